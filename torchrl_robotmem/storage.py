@@ -941,7 +941,11 @@ class ZarrStorage(LazyTensorStorage):
         )
 
     def summary(self) -> dict[str, Any]:
-        """Rows, episodes, runs, success rate, env names and size on disk, as a dict."""
+        """Rows, episodes, runs, success rates, env names and size on disk, as a dict.
+
+        ``success_rate`` is the fraction of transitions with ``("next", "is_success")``;
+        ``episode_success_rate`` the fraction of finished episodes that ended in success.
+        """
         n = len(self)
         out: dict[str, Any] = {"path": self.path, "rows": n, "max_size": self.max_size}
         if n and self.initialized:
@@ -949,7 +953,12 @@ class ZarrStorage(LazyTensorStorage):
             out["runs"] = int(torch.unique(self._storage.get("run")[:n]).numel())
             succ = ("next", "is_success")
             if succ in self._storage.keys(True, True):
-                out["success_rate"] = float((self._storage.get(succ)[:n] > 0.5).float().mean())
+                success = self._storage.get(succ)[:n].reshape(n, -1)[:, 0] > 0.5
+                out["success_rate"] = float(success.float().mean())
+                if _DONE_KEY in self._storage.keys(True, True):
+                    ends = self._storage.get(_DONE_KEY)[:n].reshape(n, -1).any(-1)
+                    if ends.any():  # success at the last step of each finished episode
+                        out["episode_success_rate"] = float(success[ends].float().mean())
         else:
             out["episodes"] = out["runs"] = 0
         out["envs"] = self.env_names
