@@ -183,6 +183,13 @@ class ZarrStorage(LazyTensorStorage):
 
         if not self.read_only:
             self._claim_writer()
+        try:
+            self._open(path, max_size, env=env, chunk_rows=chunk_rows, storage_options=storage_options, device=device)
+        except BaseException:
+            self._release()
+            raise
+
+    def _open(self, path, max_size, *, env, chunk_rows, storage_options, device) -> None:
         store, self._local_dir = _zarr.open_store(
             self.path, read_only=self.read_only, storage_options=storage_options
         )
@@ -349,6 +356,18 @@ class ZarrStorage(LazyTensorStorage):
                 ),
             )
         return td
+
+    def _close_episode_at(self, row: int) -> None:
+        """Ends the open episode at ``row`` (done/truncated), for writers that learn of a boundary late."""
+        with self._cv:
+            rows = torch.tensor([row])
+            self._storage.get(_DONE_KEY)[rows] = True
+            if _TRUNCATED_KEY in self._storage.keys(True, True):
+                self._storage.get(_TRUNCATED_KEY)[rows] = True
+            self._open_traj.pop(-1, None)
+            self._mark_dirty(rows)
+        self._bump_mutation_revision()
+        self._kick()
 
     def _close_open_episodes(self) -> None:
         """Marks the last row of every episode the previous run left open as done/truncated.
@@ -876,19 +895,22 @@ class ZarrStorage(LazyTensorStorage):
         try:
             self.flush()
         finally:
-            self._closed = True
-            if self._lock_file is not None:
-                self._lock_file.release()
-                self._lock_file = None
-            ref = _OPEN_WRITERS.get(str(self.path))
-            if ref is not None and ref() is self:
-                del _OPEN_WRITERS[str(self.path)]
-            close = getattr(self._store, "close", None)
-            if close is not None and not isinstance(self._store, str):
-                try:
-                    close()
-                except Exception:
-                    pass
+            self._release()
+
+    def _release(self) -> None:
+        self._closed = True
+        if getattr(self, "_lock_file", None) is not None:
+            self._lock_file.release()
+            self._lock_file = None
+        ref = _OPEN_WRITERS.get(str(self.path))
+        if ref is not None and ref() is self:
+            del _OPEN_WRITERS[str(self.path)]
+        close = getattr(getattr(self, "_store", None), "close", None)
+        if close is not None:
+            try:
+                close()
+            except Exception:
+                pass
 
     def __enter__(self) -> ZarrStorage:
         return self

@@ -1,0 +1,300 @@
+"""``RobotMemory``: robotmem's quick-start API, for code outside TorchRL loops.
+
+The seed product (robotmem) offered ``RobotMemory(db=...)``,
+``save_perception(observation, action, reward, metadata)`` and
+``recall(desired_goal, top_k)``. :class:`RobotMemory` keeps those calls but
+stores into a :class:`~torchrl_robotmem.ZarrStorage` and answers with the exact
+:class:`~torchrl_robotmem.GoalIndex`, so a store written by a TorchRL collector
+can be read here, and a store written here can be sampled by any TorchRL
+buffer (``RobotMemory.buffer``) or opened with ``ZarrStorage(path)``.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import TensorDictReplayBuffer
+
+from . import _zarr
+from .recall import GoalIndex
+from .storage import TAG_KEYS, ZarrStorage
+
+__all__ = ["RobotMemory"]
+
+_GOAL_KEY = ("next", "achieved_goal")
+_SUCCESS_KEY = ("next", "is_success")
+# robotmem's context_filter keys -> our recall filters
+_CONTEXT_FILTERS = {"task.success": "success_only", "success": "success_only", "env": "env", "task.env": "env"}
+
+
+class RobotMemory:
+    """A persistent goal-conditioned memory with robotmem's quick-start API.
+
+    Each :meth:`save_perception` call stores one transition in the layout a
+    TorchRL collector produces: the values *after* the step under ``"next"``
+    (``("next", "observation")``, ``("next", "achieved_goal")``, ``("next",
+    "reward")``, ``("next", "is_success")``, ...), the values before it at the
+    root (taken from the previous call of the same episode), and ``"action"``.
+    An episode ends when ``metadata`` says ``terminated`` / ``truncated`` /
+    ``done``, or when the desired goal changes (Fetch and Hand goals are fixed
+    within an episode).
+
+    Args:
+        path (str or os.PathLike): the store (a directory, a ``*.zip`` or a Zarr
+            store URL). Created when missing.
+        max_size (int, optional): capacity in transitions when the store is
+            created. Defaults to 1_000_000; ignored for an existing store
+            (whose capacity is kept) unless larger (then it grows, see
+            :class:`ZarrStorage`).
+
+    Keyword Args:
+        env (str, optional): environment name for rows whose metadata has no
+            ``"env"``.
+        read_only (bool, optional): open for reading only. Defaults to ``False``.
+        metric (str, optional): goal metric for :meth:`recall`: ``"euclidean"``
+            (Fetch, HandReach) or ``"pose"`` (HandManipulate*: position plus
+            rotation angle). Defaults to ``"euclidean"``.
+        **storage_kwargs: passed to :class:`ZarrStorage`.
+
+    Example:
+        >>> import numpy as np
+        >>> from torchrl_robotmem import RobotMemory
+        >>> mem = RobotMemory("memory://robotmemory-doc", max_size=100)
+        >>> for t in range(3):
+        ...     _ = mem.save_perception(
+        ...         observation=np.zeros(25), action=np.zeros(4), reward=-1.0,
+        ...         metadata={"achieved_goal": [0.1 * t, 0.0, 0.0], "desired_goal": [1.0, 0.0, 0.0],
+        ...                   "is_success": t == 2, "env": "FetchPickAndPlace-v4"})
+        >>> prior = mem.recall([0.2, 0.0, 0.0], top_k=2)
+        >>> prior["next", "achieved_goal"][:, 0].tolist(), prior["mask"].tolist()
+        ([0.20000000298023224, 0.10000000149011612], [True, True])
+        >>> mem.recall([0.0, 0.0, 0.0], top_k=2, success_only=True)["mask"].tolist()
+        [True, False]
+        >>> mem.close()
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        max_size: int | None = None,
+        *,
+        env: str | None = None,
+        read_only: bool = False,
+        metric: str = "euclidean",
+        **storage_kwargs: Any,
+    ) -> None:
+        if max_size is None and not read_only and not _store_exists(path):
+            max_size = 1_000_000
+        self.storage = ZarrStorage(path, max_size, env=env, read_only=read_only, **storage_kwargs)
+        self.buffer = TensorDictReplayBuffer(storage=self.storage, batch_size=256)
+        self.index = GoalIndex(self.storage, goal_key=_GOAL_KEY, success_key=_SUCCESS_KEY, metric=metric)
+        self._prev: dict[str, torch.Tensor] | None = None  # the open episode's last "next" values
+        self._prev_row: int | None = None
+
+    # -- writing --------------------------------------------------------------
+
+    def save_perception(
+        self,
+        observation: Any,
+        action: Any,
+        reward: float | Any,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> int:
+        """Stores one transition; returns its row in the storage.
+
+        Args:
+            observation: the observation after the step (``obs["observation"]``).
+            action: the action taken.
+            reward: the reward received.
+            metadata (dict): ``achieved_goal`` and ``desired_goal`` (required),
+                ``is_success``, ``env`` (a name), and optionally ``terminated``,
+                ``truncated`` or ``done`` to end the episode.
+        """
+        metadata = dict(metadata or {})
+        for key in ("achieved_goal", "desired_goal"):
+            if key not in metadata:
+                raise KeyError(
+                    f"metadata must hold {key!r} (the GoalEnv observation's {key!r}); got keys "
+                    f"{sorted(metadata)}."
+                )
+        step = {
+            "observation": _row(observation, "observation"),
+            "achieved_goal": _row(metadata.pop("achieved_goal"), "achieved_goal"),
+            "desired_goal": _row(metadata.pop("desired_goal"), "desired_goal"),
+        }
+        terminated = bool(metadata.pop("terminated", False))
+        truncated = bool(metadata.pop("truncated", False))
+        done = bool(metadata.pop("done", False)) or terminated or truncated
+        success = float(np.asarray(metadata.pop("is_success", 0.0)))
+        env = metadata.pop("env", None)
+        if env is not None:
+            self.storage.env = str(env)
+        if metadata:
+            raise KeyError(
+                f"Unknown metadata keys {sorted(metadata)}; expected achieved_goal, desired_goal, "
+                f"is_success, env, terminated, truncated, done."
+            )
+        if self._prev is not None and not torch.equal(self._prev["desired_goal"], step["desired_goal"]):
+            # a new goal means a new episode, even if the caller never said so
+            self.storage._close_episode_at(self._prev_row)
+            self._prev = None
+        before = self._prev if self._prev is not None else step
+        td = TensorDict(
+            {
+                "observation": before["observation"],
+                "achieved_goal": before["achieved_goal"],
+                "desired_goal": step["desired_goal"],
+                "action": _row(action, "action"),
+                "next": {
+                    **step,
+                    "reward": torch.as_tensor(np.asarray(reward, dtype=np.float32)).reshape(1),
+                    "done": torch.tensor([done]),
+                    "terminated": torch.tensor([terminated]),
+                    "truncated": torch.tensor([truncated or (done and not terminated)]),
+                    "is_success": torch.tensor(success, dtype=torch.float32),
+                },
+            },
+            [],
+        )
+        row = int(self.buffer.add(self._fit_schema(td)))
+        self._prev, self._prev_row = (None, None) if done else (step, row)
+        return row
+
+    def save_episode(self, episode: TensorDictBase) -> torch.Tensor:
+        """Stores a whole episode at once; returns the rows written.
+
+        Args:
+            episode (TensorDictBase): transitions of batch size ``[T]`` in TorchRL's
+                layout, e.g. ``env.rollout(50)`` of :func:`~torchrl_robotmem.make_env`
+                or one trajectory of a collector. Its last transition is marked
+                done if it is not already.
+        """
+        if not isinstance(episode, TensorDictBase) or episode.batch_dims != 1:
+            raise TypeError(
+                "save_episode expects a TensorDict of batch size [T] (e.g. env.rollout(T)); "
+                f"got {type(episode).__name__} {getattr(episode, 'batch_size', '')}."
+            )
+        episode = episode.clone()
+        done = episode.get(("next", "done"), None)
+        if done is not None and not bool(done[-1].any()):
+            done[-1] = True
+            if ("next", "truncated") in episode.keys(True, True):
+                episode.get(("next", "truncated"))[-1] = True
+        self._prev = None
+        return self.buffer.extend(self._fit_schema(episode))
+
+    def _fit_schema(self, td: TensorDictBase) -> TensorDictBase:
+        """Zero-fills keys an existing store (e.g. written by a collector) has and ``td`` lacks."""
+        schema = self.storage._schema
+        if schema is None:
+            return td
+        batch = tuple(td.batch_size)
+        have = {_zarr.key_to_path(k) for k in td.keys(True, True)}
+        for path, spec in schema.items():
+            key = _zarr.path_to_key(path)
+            if path in have or key in TAG_KEYS:
+                continue
+            td.set(key, torch.zeros(*batch, *spec["shape"], dtype=_zarr.torch_dtype(spec["dtype"])))
+        for path in have - set(schema):
+            td = td.exclude(_zarr.path_to_key(path))
+        return td
+
+    # -- reading --------------------------------------------------------------
+
+    def recall(
+        self,
+        desired_goal: Any,
+        top_k: int = 5,
+        *,
+        success_only: bool = False,
+        env: str | list[str] | None = None,
+        max_distance: float | None = None,
+        context_filter: Mapping[str, Any] | None = None,
+        spatial_sort: Mapping[str, Any] | None = None,
+    ) -> TensorDictBase:
+        """The ``top_k`` stored transitions whose achieved goals are nearest ``desired_goal``.
+
+        Args:
+            desired_goal: one goal ``[goal_dim]`` or a batch ``[B, goal_dim]``.
+            top_k (int): how many to return. Defaults to 5.
+
+        Keyword Args:
+            success_only (bool): only transitions with ``is_success``.
+            env (str or list of str): only transitions from these environments.
+            max_distance (float): only transitions at most this far.
+            context_filter (dict): robotmem-style filters, e.g.
+                ``{"task.success": True, "env": "FetchPush-v4"}``.
+            spatial_sort (dict): robotmem-style ``{"field": ..., "target": goal}``; the
+                ``target`` replaces ``desired_goal`` (results are always sorted by
+                distance to the query).
+
+        Returns:
+            a TensorDict of batch ``[top_k]`` (or ``[B, top_k]``) with every stored key
+            (observation, action, reward, achieved/desired goal, is_success, episode,
+            run, env, ...) plus ``distance``, ``mask`` (False where fewer than
+            ``top_k`` matched) and ``index``.
+        """
+        if context_filter:
+            for key, value in context_filter.items():
+                if key not in _CONTEXT_FILTERS:
+                    raise KeyError(
+                        f"Unsupported context_filter key {key!r}; supported: {sorted(_CONTEXT_FILTERS)}."
+                    )
+                if _CONTEXT_FILTERS[key] == "success_only":
+                    success_only = bool(value)
+                else:
+                    env = value
+        if spatial_sort is not None:
+            if "target" not in spatial_sort:
+                raise KeyError("spatial_sort needs a 'target' goal, e.g. {'target': desired_goal}.")
+            desired_goal = spatial_sort["target"]
+        return self.index.recall(
+            desired_goal, top_k, success_only=success_only, env=env, max_distance=max_distance
+        )
+
+    def __len__(self) -> int:
+        return len(self.storage)
+
+    def summary(self) -> dict[str, Any]:
+        return self.storage.summary()
+
+    def flush(self) -> None:
+        self.storage.flush()
+
+    def close(self) -> None:
+        self.storage.close()
+
+    def __enter__(self) -> RobotMemory:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"RobotMemory({self.storage!r})"
+
+
+def _row(value: Any, name: str) -> torch.Tensor:
+    try:
+        out = torch.as_tensor(np.asarray(value, dtype=np.float32)).reshape(-1)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name!r} must be an array of numbers, got {type(value).__name__}: {err}") from None
+    if not torch.isfinite(out).all():
+        raise ValueError(f"{name!r} holds NaN or inf values: {out.tolist()}.")
+    return out
+
+
+def _store_exists(path: str | os.PathLike) -> bool:
+    spath = os.fspath(path)
+    if _zarr.is_url(spath) and not spath.startswith("file://"):
+        try:
+            _zarr.open_group(_zarr.open_store(spath, read_only=True, storage_options=None)[0], read_only=True)
+            return True
+        except Exception:
+            return False
+    spath = spath[len("file://") :] if spath.startswith("file://") else spath
+    return os.path.exists(os.path.join(spath, "zarr.json")) or (spath.endswith(".zip") and os.path.exists(spath))
