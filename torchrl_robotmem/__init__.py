@@ -3,7 +3,11 @@
 Public surface:
 
 - :class:`ZarrStorage`: a TorchRL storage persisted in a Zarr v3 store.
-- :func:`make_env`: Gymnasium-Robotics Fetch / Shadow Hand envs ready for TorchRL collectors.
+- :class:`GoalIndex` and :func:`recall`: exact nearest-goal lookup over a storage.
+- :class:`GoalSimilaritySampler`: a TorchRL sampler drawing rows near query goals.
+- :class:`RecallTransform`: an env transform appending the nearest remembered goals.
+- :class:`RobotMemory`: robotmem's quick-start API over the same store.
+- :func:`make_env` / :func:`make_reward_fn`: Fetch / Shadow Hand envs and HER rewards.
 """
 from __future__ import annotations
 
@@ -11,5 +15,27 @@ __version__ = "0.1.0"
 
 from .envs import make_env, make_reward_fn
 from .storage import ZarrStorage
+from .recall import GoalIndex, recall
+from .memory import RobotMemory
 
-__all__ = ["ZarrStorage", "make_env", "make_reward_fn", "__version__"]
+__all__ = [
+    "GoalIndex",
+    "RobotMemory",
+    "ZarrStorage",
+    "make_env",
+    "make_reward_fn",
+    "recall",
+    "__version__",
+]
+try:  # modules still being written land here as they arrive
+    from .sampler import GoalSimilaritySampler  # noqa: F401
+
+    __all__.append("GoalSimilaritySampler")
+except ImportError:
+    pass
+try:
+    from .transform import RecallTransform  # noqa: F401
+
+    __all__.append("RecallTransform")
+except ImportError:
+    pass

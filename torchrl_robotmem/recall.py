@@ -459,7 +459,8 @@ class GoalIndex:
 
     def _parse_goal(self, goal) -> tuple[np.ndarray, bool]:
         if isinstance(goal, torch.Tensor):
-            q = goal.detach().cpu().to(torch.float64).numpy()
+            q = goal.detach()
+            q = (q if q.device.type == "cpu" else q.cpu()).double().numpy()
         else:
             try:
                 q = np.asarray(goal, dtype=np.float64)
@@ -803,6 +804,9 @@ class GoalIndex:
             valid = pos >= 0
             if seg.n_stale:
                 valid &= owner[np.maximum(pos, 0)] == seg.level
+            if dist is not None and len(qvars) == 1 and todo.size == Q and valid[:, :k].all():
+                # sorted exact results whose first k rows are all live: nothing to re-rank
+                return dist[:, :k], pos[:, :k]
             if dist is None:
                 dist = self._exact(sub_q, pos)
             dist = np.where(valid, dist, np.inf)

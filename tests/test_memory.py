@@ -1,0 +1,151 @@
+"""RobotMemory: the robotmem quick-start API over ZarrStorage + GoalIndex, on a real env."""
+from __future__ import annotations
+
+from functools import partial
+
+import gymnasium as gym
+import gymnasium_robotics  # noqa: F401
+import numpy as np
+import pytest
+import torch
+from torchrl.collectors import Collector
+from torchrl.data import HERReplayBuffer, TensorDictReplayBuffer
+
+from torchrl_robotmem import GoalIndex, RobotMemory, ZarrStorage, make_env, make_reward_fn
+
+gym.register_envs(gymnasium_robotics)
+
+
+def _play(mem, env_id="FetchPickAndPlace-v4", steps=120, seed=0):
+    env = gym.make(env_id)
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    log = []
+    for _ in range(steps):
+        action = rng.uniform(-1, 1, 4).astype(np.float32)
+        obs, reward, terminated, truncated, info = env.step(action)
+        mem.save_perception(
+            observation=obs["observation"], action=action, reward=reward,
+            metadata={"achieved_goal": obs["achieved_goal"], "desired_goal": obs["desired_goal"],
+                      "is_success": info["is_success"], "env": env_id,
+                      "terminated": terminated, "truncated": truncated},
+        )
+        log.append((obs["achieved_goal"].copy(), action, info["is_success"]))
+        if terminated or truncated:
+            obs, _ = env.reset()
+    env.close()
+    return log
+
+
+def test_save_perception_and_exact_recall(tmp_path):
+    with RobotMemory(tmp_path / "m.zarr", max_size=1000) as mem:
+        log = _play(mem, steps=120)
+        assert len(mem) == 120
+        goals = torch.tensor(np.stack([g for g, _, _ in log]), dtype=torch.float32)
+        query = goals[57] + 0.01
+        out = mem.recall(query.numpy(), top_k=5)
+        brute = (goals - query).norm(dim=-1).argsort()[:5]
+        assert out["index"].tolist() == brute.tolist()
+        assert torch.allclose(out["next", "achieved_goal"], goals[brute])
+        assert torch.allclose(out["action"], torch.tensor(np.stack([log[i][1] for i in brute.tolist()])))
+        assert out["mask"].all() and (out["distance"][1:] >= out["distance"][:-1]).all()
+        # episodes: 50-step Fetch episodes, split at truncation, root obs = previous next obs
+        s = mem.storage
+        assert s["episode"][:120].tolist() == [0] * 50 + [1] * 50 + [2] * 20
+        assert torch.equal(s["observation"][1:50], s["next", "observation"][0:49])
+        assert s.env_names == ("FetchPickAndPlace-v4",)
+
+
+def test_recall_filters_batch_and_robotmem_style_arguments(tmp_path):
+    with RobotMemory(tmp_path / "m.zarr", max_size=1000) as mem:
+        for t in range(30):
+            mem.save_perception(
+                np.zeros(25), np.zeros(4), -1.0,
+                {"achieved_goal": [t * 0.01, 0, 0], "desired_goal": [1, 0, 0],
+                 "is_success": t % 10 == 0, "env": "FetchPush-v4" if t < 20 else "FetchSlide-v4"},
+            )
+        q = np.array([0.155, 0, 0])
+        assert mem.recall(q, top_k=2)["index"].tolist() == [15, 16]
+        succ = mem.recall(q, top_k=5, success_only=True)
+        assert succ["index"][:3].tolist() == [10, 20, 0] and succ["mask"].tolist() == [True] * 3 + [False] * 2
+        assert (succ["next", "is_success"][:3] == 1).all()
+        same = mem.recall(None, top_k=5, context_filter={"task.success": True}, spatial_sort={"field": "spatial.target", "target": q})
+        assert torch.equal(same["index"], succ["index"])
+        slide = mem.recall(q, top_k=3, env="FetchSlide-v4")
+        assert slide["index"].tolist() == [20, 21, 22]
+        batch = mem.recall(np.stack([q, q * 0]), top_k=2)
+        assert batch.shape == (2, 2) and batch["index"][1].tolist() == [0, 1]
+        with pytest.raises(ValueError, match="FetchReach-v4"):
+            mem.recall(q, env="FetchReach-v4")
+        with pytest.raises(KeyError, match="context_filter"):
+            mem.recall(q, context_filter={"task.reward": 1})
+
+
+def test_bad_input_leaves_memory_unchanged(tmp_path):
+    with RobotMemory(tmp_path / "m.zarr", max_size=100) as mem:
+        ok = {"achieved_goal": [0, 0, 0], "desired_goal": [1, 0, 0], "is_success": 0}
+        mem.save_perception(np.zeros(25), np.zeros(4), -1.0, ok)
+        with pytest.raises(KeyError, match="achieved_goal"):
+            mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {"desired_goal": [1, 0, 0]})
+        with pytest.raises(ValueError, match="NaN"):
+            mem.save_perception(np.full(25, np.nan), np.zeros(4), -1.0, ok)
+        with pytest.raises(ValueError, match="'observation'.*shape"):
+            mem.save_perception(np.zeros(24), np.zeros(4), -1.0, ok)
+        with pytest.raises(KeyError, match="Unknown metadata"):
+            mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {**ok, "colour": "red"})
+        with pytest.raises(ValueError, match="dim"):
+            mem.recall([0.0, 0.0], top_k=1)
+        with pytest.raises(ValueError):
+            mem.recall([np.nan, 0.0, 0.0], top_k=1)
+        with pytest.raises(ValueError):
+            mem.recall([0.0, 0.0, 0.0], top_k=0)
+        assert len(mem) == 1 and mem.buffer.writer._cursor == 1
+
+
+def test_goal_change_starts_a_new_episode(tmp_path):
+    with RobotMemory(tmp_path / "m.zarr", max_size=100) as mem:
+        for goal in ([1, 0, 0], [1, 0, 0], [0, 1, 0]):  # no done flag between goals
+            mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {"achieved_goal": [0, 0, 0], "desired_goal": goal})
+        s = mem.storage
+        assert s["episode"][:3].tolist() == [0, 0, 1]
+        assert s["next", "done"][:3].squeeze(-1).tolist() == [False, True, False]
+
+
+def test_collector_store_is_readable_by_robotmemory_and_back(tmp_path):
+    path = tmp_path / "m.zarr"
+    storage = ZarrStorage(path, 10_000, env="FetchPush-v4")
+    rb = TensorDictReplayBuffer(storage=storage, batch_size=32)
+    collector = Collector(partial(make_env, "FetchPush-v4", seed=1), policy=None, frames_per_batch=100, total_frames=200)
+    for data in collector:
+        rb.extend(data.reshape(-1))
+    collector.shutdown()
+    goals = storage["next", "achieved_goal"][:200].clone()
+    storage.close()
+
+    with RobotMemory(path) as mem:  # read a collector-written store
+        assert len(mem) == 200
+        q = goals[123]
+        assert int(mem.recall(q.numpy(), top_k=1)["index"][0]) == int((goals - q).norm(dim=-1).argmin())
+        # and write into it: keys the facade does not know are zero-filled
+        mem.save_perception(np.zeros(25), np.zeros(4), -1.0,
+                            {"achieved_goal": [9, 9, 9], "desired_goal": [1, 1, 1], "is_success": 1.0})
+        assert len(mem) == 201
+    storage = ZarrStorage(path)  # ... and back: TorchRL buffers sample it, HER relabels it
+    her = HERReplayBuffer(reward_fn=make_reward_fn("FetchPush-v4"), storage=storage, batch_size=64,
+                          achieved_goal_key=("next", "achieved_goal"))
+    batch = her.sample()
+    assert batch.shape == (64,) and (batch["next", "reward"] == 0).any()
+    assert int(GoalIndex(storage).search([9.0, 9.0, 9.0], 1)[1][0]) == 200
+    storage.close()
+
+
+def test_save_episode_from_a_rollout(tmp_path):
+    env = make_env("FetchReach-v4", seed=0)
+    with RobotMemory(tmp_path / "m.zarr", max_size=1000) as mem:
+        rows = mem.save_episode(env.rollout(20))
+        assert rows.tolist() == list(range(20))
+        assert bool(mem.storage["next", "done"][19])  # closed although the rollout was cut
+        rows = mem.save_episode(env.rollout(10))
+        assert mem.storage["episode"][20:30].unique().tolist() == [1]
+        with pytest.raises(TypeError, match="batch size"):
+            mem.save_episode(env.rollout(4).reshape(2, 2))
