@@ -140,7 +140,10 @@ class _BruteSegment(_Segment):
         super().__init__(level, rows)
         self.metric = metric
         if emb is not None:
-            self.X = torch.from_numpy(np.ascontiguousarray(emb, dtype=np.float32))
+            # Centred, so that the float32 rounding margin scales with the spread of the goals
+            # rather than with their distance to the origin.
+            self.center = emb.mean(0) if self.size else np.zeros(emb.shape[1])
+            self.X = torch.from_numpy(np.ascontiguousarray(emb - self.center, dtype=np.float32))
             self.norms = self.X.pow(2).sum(1)
             self.maxnorm = float(self.norms.max().sqrt()) if self.size else 0.0
             self.exact = False
@@ -175,6 +178,7 @@ class _BruteSegment(_Segment):
         pos, bound = [], None
         e = self.X.shape[1]
         for v in qvars:
+            v = v - self.center
             q = torch.from_numpy(v).float()
             X, norms = self.X, self.norms
             a, loc = self._topk(
@@ -203,6 +207,7 @@ class _View:
         self.main = self.mid = self.live = None
         self.owner = np.zeros(0, dtype=np.int8)
         self.backend = None
+        self.members = None
 
     @property
     def segments(self):
@@ -354,6 +359,18 @@ class GoalIndex:
             self._sync_view(self._get_view(key))
         return self
 
+    def _member_rows(self, *, success_only: bool = False, env=None, run=None) -> torch.Tensor:
+        """Storage rows passing these filters (int64), cached until the storage changes."""
+        key = self._filter_key(success_only, env, run)
+        self._sync()
+        if self._goal_shape is None or self._n == 0:
+            return torch.zeros(0, dtype=torch.int64)
+        view = self._get_view(key)
+        self._sync_view(view)
+        if view.members is None or view.members[0] != self._epoch:
+            view.members = (self._epoch, torch.from_numpy(np.flatnonzero(view.owner[: self._n])))
+        return view.members[1]
+
     def search(
         self,
         goal,
@@ -394,12 +411,9 @@ class GoalIndex:
             view = self._get_view(key)
             self._sync_view(view)
             d, p = self._search_view(view, q, k, max_d)
-        dist = torch.from_numpy(d.astype(np.float32))
-        index = torch.from_numpy(p)
-        mask = index >= 0
         if not batched:
-            dist, index, mask = dist[0], index[0], mask[0]
-        return dist, index, mask
+            d, p = d[0], p[0]
+        return torch.from_numpy(d.astype(np.float32)), torch.from_numpy(p), torch.from_numpy(p >= 0)
 
     def recall(
         self,
@@ -648,7 +662,7 @@ class GoalIndex:
 
         def col(k):
             c = self._snap[k][sel]
-            return c.reshape(c.shape[0], -1)
+            return c.reshape(c.shape[0], int(np.prod(c.shape[1:], dtype=np.int64)))
 
         g = col(self.goal_key)
         mask = np.isfinite(g).all(1) if g.dtype.kind == "f" else np.ones(g.shape[0], dtype=bool)
@@ -717,7 +731,7 @@ class GoalIndex:
 
     def _build_segment(self, level, rows, backend) -> _Segment:
         goals = self._snap[self.goal_key][rows]
-        goals = goals.reshape(goals.shape[0], -1)
+        goals = goals.reshape(goals.shape[0], int(np.prod(self._goal_shape)))
         if backend == "kdtree":
             emb = self.metric._embed(goals)
             exact = self.metric._embedding_exact and len(self.metric._embed_queries(emb[:0])) == 1
@@ -778,7 +792,7 @@ class GoalIndex:
 
     def _exact(self, q: np.ndarray, pos: np.ndarray) -> np.ndarray:
         g = self._snap[self.goal_key][np.maximum(pos, 0)]
-        g = torch.from_numpy(g.reshape(*pos.shape, -1).astype(np.float64))
+        g = torch.from_numpy(g.reshape(*pos.shape, int(np.prod(self._goal_shape))).astype(np.float64))
         return self.metric.distance(torch.from_numpy(q)[:, None, :], g).numpy()
 
     def _search_segment(self, seg, owner, q, qvars, k, max_d):
@@ -804,7 +818,7 @@ class GoalIndex:
             valid = pos >= 0
             if seg.n_stale:
                 valid &= owner[np.maximum(pos, 0)] == seg.level
-            if dist is not None and len(qvars) == 1 and todo.size == Q and valid[:, :k].all():
+            if dist is not None and len(qvars) == 1 and todo.size == Q and dist.shape[1] >= k and valid[:, :k].all():
                 # sorted exact results whose first k rows are all live: nothing to re-rank
                 return dist[:, :k], pos[:, :k]
             if dist is None:

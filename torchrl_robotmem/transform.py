@@ -246,14 +246,19 @@ class RecallTransform(Transform):
             device=device,
         )
         if n and self._memory_len():
-            found = self.index.recall(flat, k, success_only=self.success_only, env=self.env_filter)
-            mask = found.get("mask")
+            # search + the few columns needed: GoalIndex.recall would gather every stored key.
+            dist, index, mask = self.index.search(
+                flat, k, success_only=self.success_only, env=self.env_filter
+            )
             if bool(mask.any()):
                 out.set(mask_out, mask.to(device))
-                out.set(dist_out, found.get("distance").masked_fill(~mask, 0.0).to(device))
-                out.set(goal_out, found.get(self.goal_key).to(device, torch.float32))
-                for src, dst in self.context_keys.items():
-                    out.set(dst, found.get(src).to(device))
+                out.set(dist_out, dist.masked_fill(~mask, 0.0).to(device))
+                rows = index.clamp_min(0)
+                for src, dst in ((self.goal_key, goal_out), *self.context_keys.items()):
+                    column = self._stored(src)
+                    value = column[rows.to(column.device)].reshape(n, k, *shapes[dst][0])
+                    value[~mask.to(value.device)] = 0
+                    out.set(dst, value.to(device, shapes[dst][1]))
         return out.reshape(batch)
 
     def _feature_shapes(self, goal_dim: int) -> dict[NestedKey, tuple[tuple[int, ...], torch.dtype]]:
