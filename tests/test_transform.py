@@ -287,17 +287,21 @@ def test_success_and_env_filters(tmp_path, transitions):
 # -- specs, collectors, processes -------------------------------------------------------
 
 
-def _checked_recall_env(path: str, num_envs: int = 1) -> object:
+def _checked_recall_env(memory, num_envs: int = 1, parallel: bool = False) -> object:
     """Env factory run by collectors, in their workers for the multi-process ones."""
-    env = make_env("FetchPush-v4", num_envs, seed=0, max_episode_steps=EP_LEN,
-                   transforms=[RecallTransform(path, K, context_keys={"action": "prior_actions"})])
+    env = make_env("FetchPush-v4", num_envs, seed=0, max_episode_steps=EP_LEN, parallel=parallel,
+                   transforms=[RecallTransform(memory, K, context_keys={"action": "prior_actions"})])
     check_env_specs(env)
     return env
 
 
-@pytest.mark.parametrize("num_envs", [1, 2])
-def test_check_env_specs_single_and_serial(memories, num_envs):
-    env = _checked_recall_env(memories["FetchPush-v4"], num_envs)
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("num_envs,parallel", [(1, False), (2, False), (2, True)], ids=["single", "serial2", "parallel2"])
+def test_check_env_specs_single_and_batched(memories, num_envs, parallel):
+    # Outside the batched env the transform stays in this process: a storage object is fine,
+    # even with ParallelEnv's spawned workers.
+    memory = ZarrStorage(memories["FetchPush-v4"], read_only=True)
+    env = _checked_recall_env(memory, num_envs, parallel)
     batch = (num_envs,) if num_envs > 1 else ()
     spec = env.observation_spec
     assert spec["prior_goals"].shape == (*batch, K, 3) and spec["prior_goals"].dtype == torch.float32
@@ -359,3 +363,11 @@ def test_argument_validation():
         RecallTransform(42)
     with pytest.raises(ValueError, match="distinct"):
         RecallTransform(rb, context_keys={"action": "prior_goals"})
+
+
+def test_goal_size_mismatch_is_caught_at_spec_time(memories):
+    hand_memory = memories["HandManipulateBlock-v1"]  # 7-D goals
+    with pytest.raises(ValueError, match="Goal sizes disagree"):
+        make_env("FetchPush-v4", seed=0, transforms=[RecallTransform(hand_memory, K)])
+    with pytest.raises(ValueError, match="needs goals of dimension 7"):
+        make_env("FetchPush-v4", seed=0, transforms=[RecallTransform(LazyTensorStorage(10), K, metric="pose")])

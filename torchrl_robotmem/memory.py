@@ -198,7 +198,7 @@ class RobotMemory:
             key = _zarr.path_to_key(path)
             if path in have or key in TAG_KEYS:
                 continue
-            td.set(key, torch.zeros(*batch, *spec["shape"], dtype=_zarr.torch_dtype(spec["dtype"])))
+            td.set(key, torch.zeros((*batch, *spec["shape"]), dtype=_zarr.torch_dtype(spec["dtype"])))
         for path in have - set(schema):
             td = td.exclude(_zarr.path_to_key(path))
         return td

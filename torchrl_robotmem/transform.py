@@ -363,7 +363,7 @@ class RecallTransform(Transform):
         if tensordict is None:
             return None
         parent = self.parent
-        reset_keys = parent._filtered_reset_keys if parent is not None else ["_reset"]
+        reset_keys = parent.reset_keys if parent is not None else ["_reset"]
         masks = []
         for key in reset_keys:
             flag = tensordict.get(key, None)
@@ -386,6 +386,7 @@ class RecallTransform(Transform):
             in_shape = observation_spec[in_key].shape
             spec_dim = int(in_shape[-1]) if len(in_shape) > len(batch) else None
         goal_dim = self._resolve_goal_dim(spec_dim)
+        self._metric_obj.check_goal_dim(goal_dim)
         for key, (shape, dtype) in self._feature_shapes(goal_dim).items():
             full = (*batch, self.k, *shape)
             if dtype == torch.bool:
