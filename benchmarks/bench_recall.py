@@ -14,12 +14,10 @@ import platform
 import statistics
 import time
 
-import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_robotmem.metrics import get_metric
 from torchrl_robotmem.recall import GoalIndex
 
 torch.set_num_threads(1)
@@ -175,7 +173,14 @@ def incremental(rb, index, gen, queries, rep):
     out["extend1000_ms"] = 1e3 * statistics.median(ext)
     out["update_after_extend1000_ms"] = 1e3 * statistics.median(upd)
     out["update_after_extend1000_mean_ms"] = 1e3 * statistics.mean(upd)
-    out["search_1q_with_tail_ms"] = 1e3 * statistics.median(q_after)
+    out["search_1q_first_after_update_ms"] = 1e3 * statistics.median(q_after)
+    view = index._views[(False, None, None)]
+    out["tail_state"] = (
+        f"main stale {view.main.n_stale}, mid {view.mid.size if view.mid else 0}, "
+        f"live {view.live.size if view.live else 0}"
+    )
+    out["search_1q_with_tail_ms"] = median_ms(lambda: index.search(q1[0], 5), 10 * rep)
+    out["search_256q_with_tail_ms"] = median_ms(lambda: index.search(queries, 5), rep)
     out["full_before_ring"] = st._is_full
     return out
 

@@ -29,8 +29,7 @@ import torch
 from torchrl.collectors import Collector
 from torchrl.data import TensorDictReplayBuffer
 
-from torchrl_robotmem import ZarrStorage, make_env
-from torchrl_robotmem.transform import RecallTransform
+from torchrl_robotmem import RecallTransform, ZarrStorage, make_env
 
 ENV_ID = "FetchPush-v4"
 EPISODE_LEN = 50
@@ -79,6 +78,9 @@ def main() -> None:
             action = ", ".join(f"{a:+.2f}" for a in td["prior_actions"][i].tolist())
             print(f"   {i:2d}  {_xyz(td['prior_goals'][i]):24s} {100 * td['prior_goals_dist'][i]:6.1f} cm"
                   f"  {int(td['prior_episodes'][i]):12d}  ({action})")
+        sources = td["prior_episodes"][td["prior_goals_mask"]].unique()
+        if len(sources) == 1 and args.k > 1:
+            print("    (all from one episode: an object nobody touched achieves the same goal at every step)")
         rollout = env.rollout(EPISODE_LEN, auto_reset=False, tensordict=td)
         same = bool((rollout["next", "prior_goals"] == td["prior_goals"]).all())
         print(f"    ... {rollout.shape[0]} steps later the policy still sees the same priors: {same}\n")

@@ -28,8 +28,7 @@ from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.data import TensorDictReplayBuffer
 
-from torchrl_robotmem import ZarrStorage, make_env
-from torchrl_robotmem.transform import RecallTransform
+from torchrl_robotmem import RecallTransform, ZarrStorage, make_env
 
 ENV_ID = "HandManipulateBlock-v1"
 EPISODE_LEN = 100

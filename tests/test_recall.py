@@ -295,6 +295,30 @@ def test_pose_metric_exact_and_sign_invariant(backend):
         GoalIndex(make_rb(10)[0], metric="pose").search(torch.zeros(3), 1)
 
 
+@pytest.mark.parametrize("backend", ["kdtree", "brute"])
+def test_pose_search_rescores_beyond_embedding_order(backend):
+    # 300 rows at 0.05 m + 0.5 rad (pose distance 0.1) come first in the tree's embedding
+    # (~0.07) but lose to one row at 0.08 m and no rotation (distance 0.08 in both)
+    gen = torch.Generator().manual_seed(4)
+    rows = fetch_rows(2000, gen, goal_dim=7)
+    goals = rows["next", "achieved_goal"]
+    goals[:, :3] += 1.0  # the rest: far away
+    direction = torch.randn(300, 3, generator=gen)
+    axis = torch.randn(300, 3, generator=gen)
+    goals[:300, :3] = 0.05 * direction / direction.norm(dim=1, keepdim=True)
+    goals[:300, 3] = math.cos(0.25)
+    goals[:300, 4:] = math.sin(0.25) * axis / axis.norm(dim=1, keepdim=True)
+    goals[1234] = torch.tensor([0.08, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(2000))
+    rb.extend(rows)
+    index = GoalIndex(rb, metric="pose", backend=backend)
+    origin = torch.tensor([0.0, 0, 0, 1, 0, 0, 0])
+    dist, idx, _ = index.search(origin, 3)
+    assert idx[0] == 1234
+    torch.testing.assert_close(dist, torch.tensor([0.08, 0.1, 0.1]))
+    assert_exact(index, rb, origin[None], 20, metric=index.metric)
+
+
 @pytest.mark.parametrize("backend", ["auto", "kdtree", "brute"])
 def test_15d_hand_reach_goals(backend):
     rb, gen = make_rb(3000, capacity=3500, goal_dim=15)
@@ -424,3 +448,16 @@ def test_missing_columns_and_names():
         GoalIndex(torch.zeros(3))
     with pytest.raises(ValueError, match="backend"):
         GoalIndex(bare, backend="faiss")
+
+
+def test_index_pickles_and_rebuilds_lazily():
+    import pickle
+
+    rb, gen = make_rb(600)
+    index = GoalIndex(rb, metric="euclidean", tail_size=64)
+    queries = torch.rand(4, 3, generator=gen)
+    expected = index.search(queries, 3)
+    clone = pickle.loads(pickle.dumps(index))
+    assert clone._views == {} and clone.tail_size == 64
+    for a, b in zip(clone.search(queries, 3), expected):
+        assert torch.equal(a, b)

@@ -14,6 +14,11 @@ from torchrl_robotmem.sampler import GoalSimilaritySampler
 torch.set_num_threads(1)
 
 GOAL = ("next", "achieved_goal")
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)  # buffers without a generator draw from the global one
 ENV_NAMES = ("FetchPush-v4", "FetchSlide-v4")
 
 

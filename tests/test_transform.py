@@ -245,8 +245,19 @@ def test_empty_memory_gives_zeros_and_false_mask(tmp_path, transitions):
     none_succeeded = transitions(20)
     none_succeeded["next", "is_success"].zero_()
     rb.extend(none_succeeded)
-    out = RecallTransform(rb, K, success_only=True).forward(TensorDict({"desired_goal": torch.zeros(2, 3)}, [2]))
+    t = RecallTransform(rb, K, success_only=True, context_keys={"action": "prior_actions"})
+    out = t.forward(TensorDict({"desired_goal": torch.zeros(2, 3)}, [2]))
     assert not out["prior_goals_mask"].any() and not out["prior_goals_dist"].any()
+
+    # fewer than k matches: the first slots are filled, the rest are zeros with mask False
+    two = transitions(2, start=20)
+    two["next", "is_success"].fill_(1.0)
+    rb.extend(two)
+    out = t.forward(TensorDict({"desired_goal": torch.zeros(2, 3)}, [2]))
+    assert torch.equal(out["prior_goals_mask"], torch.tensor([[True, True, False, False]] * 2))
+    assert (out["prior_goals_dist"][:, :2] > 0).all() and not out["prior_goals_dist"][:, 2:].any()
+    assert not out["prior_goals"][:, 2:].any() and not out["prior_actions"][:, 2:].any()
+    assert out["prior_actions"][:, :2].ne(0).any(-1).all()
 
 
 def test_success_and_env_filters(tmp_path, transitions):
@@ -367,7 +378,9 @@ def test_argument_validation():
 
 def test_goal_size_mismatch_is_caught_at_spec_time(memories):
     hand_memory = memories["HandManipulateBlock-v1"]  # 7-D goals
+    env = make_env("FetchPush-v4", seed=0, transforms=[RecallTransform(hand_memory, K)])
     with pytest.raises(ValueError, match="Goal sizes disagree"):
-        make_env("FetchPush-v4", seed=0, transforms=[RecallTransform(hand_memory, K)])
+        env.observation_spec
+    env = make_env("FetchPush-v4", seed=0, transforms=[RecallTransform(LazyTensorStorage(10), K, metric="pose")])
     with pytest.raises(ValueError, match="needs goals of dimension 7"):
-        make_env("FetchPush-v4", seed=0, transforms=[RecallTransform(LazyTensorStorage(10), K, metric="pose")])
+        env.observation_spec

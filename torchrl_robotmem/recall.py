@@ -91,23 +91,35 @@ def _bits(a: np.ndarray) -> np.ndarray:
     return flat.view(np.dtype(f"i{flat.dtype.itemsize}")) if flat.dtype.kind != "b" else flat
 
 
+class _StrongRef:
+    """``weakref.ref``-like holder that keeps its object alive (and pickles)."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj):
+        self.obj = obj
+
+    def __call__(self):
+        return self.obj
+
+
 # -- segments -----------------------------------------------------------------
 class _Segment:
     """Storage rows frozen at build time, searchable for their k nearest."""
-
 
     def __init__(self, level: int, rows: np.ndarray):
         self.level = level
         self.rows = rows
         self.size = int(rows.size)
         self.n_stale = 0
+        self._rows_ext = np.append(rows, -1)  # KD-tree "not found" (loc == size) -> -1
 
     def _pos(self, loc: np.ndarray) -> np.ndarray:
-        ok = loc < self.size
-        return np.where(ok, self.rows[np.minimum(loc, self.size - 1)], -1)
+        return self._rows_ext[loc]
 
 
 class _TreeSegment(_Segment):
+    """A ``cKDTree`` over the metric's embedding of the rows."""
 
     def __init__(self, level, rows, emb: np.ndarray, exact: bool):
         super().__init__(level, rows)
@@ -214,6 +226,9 @@ class _View:
         return [s for s in (self.main, self.mid, self.live) if s is not None and s.size]
 
 
+_DERIVED_STATE = ("_rev", "_n", "_epoch", "_snap", "_log", "_log_rows", "_log_floor", "_views", "_goal_shape")
+
+
 # -- the index ----------------------------------------------------------------
 class GoalIndex:
     """Exact k-nearest-goal search over the transitions of a TorchRL storage.
@@ -287,8 +302,7 @@ class GoalIndex:
         rebuild_fraction: float = 0.05,
         max_cached_filters: int = 8,
     ):
-        st = _as_storage(storage)
-        self._storage_ref = lambda: st
+        self._storage_ref = _StrongRef(_as_storage(storage))
         self.goal_key = goal_key
         self.success_key = success_key
         self.env_key = env_key
@@ -448,6 +462,16 @@ class GoalIndex:
         out.set("mask", mask)
         out.set("index", index)
         return out
+
+    def __getstate__(self):
+        # Trees and snapshots are derived data: rebuilt lazily after unpickling.
+        state = {k: v for k, v in self.__dict__.items() if k not in _DERIVED_STATE}
+        state["_storage_ref"] = _StrongRef(self.storage)
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._reset_state()
 
     def __repr__(self) -> str:
         return (

@@ -105,8 +105,7 @@ class RecallTransform(Transform):
         >>> import tempfile, torch
         >>> from torchrl.collectors import Collector
         >>> from torchrl.data import TensorDictReplayBuffer
-        >>> from torchrl_robotmem import ZarrStorage, make_env
-        >>> from torchrl_robotmem.transform import RecallTransform
+        >>> from torchrl_robotmem import RecallTransform, ZarrStorage, make_env
         >>> path = tempfile.mkdtemp() + "/push.zarr"
         >>> rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 10_000, env="FetchPush-v4"))
         >>> collector = Collector(lambda: make_env("FetchPush-v4", seed=0), None,
