@@ -11,7 +11,7 @@ from tensordict import TensorDict
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_robotmem.metrics import EuclideanMetric, PoseMetric, get_metric
-from torchrl_robotmem.recall import _INDEX_CACHE, GoalIndex, recall
+from torchrl_robotmem.goal_index import _INDEX_CACHE, GoalIndex, recall
 
 torch.set_num_threads(1)
 

@@ -8,7 +8,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import HERReplayBuffer, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
-from torchrl_robotmem.recall import GoalIndex
+from torchrl_robotmem.goal_index import GoalIndex
 from torchrl_robotmem.sampler import GoalSimilaritySampler
 
 torch.set_num_threads(1)

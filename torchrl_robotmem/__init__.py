@@ -15,11 +15,15 @@ __version__ = "0.1.0"
 
 from .envs import make_env, make_reward_fn
 from .storage import ZarrStorage
-from .recall import GoalIndex, recall
+from .goal_index import GoalIndex, recall
+from .sampler import GoalSimilaritySampler
+from .transform import RecallTransform
 from .memory import RobotMemory
 
 __all__ = [
     "GoalIndex",
+    "GoalSimilaritySampler",
+    "RecallTransform",
     "RobotMemory",
     "ZarrStorage",
     "make_env",
@@ -27,15 +31,3 @@ __all__ = [
     "recall",
     "__version__",
 ]
-try:  # modules still being written land here as they arrive
-    from .sampler import GoalSimilaritySampler  # noqa: F401
-
-    __all__.append("GoalSimilaritySampler")
-except ImportError:
-    pass
-try:
-    from .transform import RecallTransform  # noqa: F401
-
-    __all__.append("RecallTransform")
-except ImportError:
-    pass

@@ -20,7 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
 from . import _zarr
-from .recall import GoalIndex
+from .goal_index import GoalIndex
 from .storage import TAG_KEYS, ZarrStorage
 
 __all__ = ["RobotMemory"]

@@ -25,7 +25,7 @@ for which ``0.5`` is the matching value.
 Every metric maps ``[Q, d] x [N, d] -> [Q, N]`` (:meth:`GoalMetric.pairwise`)
 and broadcasts elementwise (:meth:`GoalMetric.distance`), in torch. The
 built-in metrics also expose a Euclidean *embedding* whose distances are a
-lower bound of the metric; :class:`~torchrl_robotmem.recall.GoalIndex` uses it
+lower bound of the metric; :class:`~torchrl_robotmem.goal_index.GoalIndex` uses it
 to run exact searches through a KD-tree.
 """
 from __future__ import annotations

@@ -22,7 +22,7 @@ from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
 from torchrl_robotmem.metrics import GoalMetric
-from torchrl_robotmem.recall import GoalIndex, _revision, _shared_index
+from torchrl_robotmem.goal_index import GoalIndex, _revision, _shared_index
 
 __all__ = ["GoalSimilaritySampler"]
 
@@ -44,7 +44,7 @@ class GoalSimilaritySampler(Sampler):
     With a query (one goal or ``[Q, goal_dim]`` goals, e.g. the goals the envs
     are chasing now) the batch is spread evenly over the ``Q`` queries; for
     each query the ``num_candidates`` nearest stored rows are found with an
-    exact :class:`~torchrl_robotmem.recall.GoalIndex` (same filters) and rows
+    exact :class:`~torchrl_robotmem.goal_index.GoalIndex` (same filters) and rows
     are drawn, with replacement, with probabilities
     ``softmax(-distance / temperature)`` over those candidates. A fraction
     ``uniform_ratio`` of the batch is drawn uniformly instead (among the rows
@@ -57,7 +57,7 @@ class GoalSimilaritySampler(Sampler):
     repeated ``rb.sample()`` calls under one query and no new data cost a
     multinomial draw.
 
-    The GoalIndex is shared with :func:`torchrl_robotmem.recall.recall` for the
+    The GoalIndex is shared with :func:`torchrl_robotmem.goal_index.recall` for the
     same storage and keys. Use ``prefetch=None`` on the buffer: prefetched
     batches would have been drawn under an earlier query.
 

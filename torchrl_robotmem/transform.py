@@ -3,7 +3,7 @@
 :class:`RecallTransform` sits in a TorchRL env (``TransformedEnv`` or the
 ``transforms=`` of :func:`~torchrl_robotmem.make_env`). Each time an env
 resets, it looks up the ``k`` stored transitions whose achieved goals lie
-nearest to the new ``desired_goal`` (a :class:`~torchrl_robotmem.recall.GoalIndex`
+nearest to the new ``desired_goal`` (a :class:`~torchrl_robotmem.goal_index.GoalIndex`
 search over a :class:`~torchrl_robotmem.ZarrStorage` or any TorchRL tensor
 storage) and writes them into the observation as ``prior_goals``
 ``[*B, k, goal_dim]``, ``prior_goals_dist`` ``[*B, k]`` and ``prior_goals_mask``
@@ -31,7 +31,7 @@ from torchrl.data.replay_buffers.storages import Storage
 from torchrl.envs import Transform
 
 from .metrics import GoalMetric, get_metric
-from .recall import GoalIndex
+from .goal_index import GoalIndex
 from .storage import ZarrStorage
 
 __all__ = ["RecallTransform"]
@@ -205,7 +205,7 @@ class RecallTransform(Transform):
 
     @property
     def index(self) -> GoalIndex:
-        """The :class:`~torchrl_robotmem.recall.GoalIndex` searched at each reset."""
+        """The :class:`~torchrl_robotmem.goal_index.GoalIndex` searched at each reset."""
         if self._index is None:
             self._index = GoalIndex(self.storage, goal_key=self.goal_key, metric=self._metric_obj)
         return self._index

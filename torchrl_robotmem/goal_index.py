@@ -269,7 +269,7 @@ class GoalIndex:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        >>> from torchrl_robotmem.recall import GoalIndex
+        >>> from torchrl_robotmem.goal_index import GoalIndex
         >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000))
         >>> _ = rb.extend(TensorDict({
         ...     "observation": torch.randn(100, 25),
@@ -933,7 +933,7 @@ def recall(
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        >>> from torchrl_robotmem.recall import recall
+        >>> from torchrl_robotmem.goal_index import recall
         >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
         >>> _ = rb.extend(TensorDict({
         ...     "action": torch.randn(10, 4),
