@@ -214,15 +214,7 @@ class ZarrStorage(LazyTensorStorage):
         stored_max = int(attrs["max_size"])
         super().__init__(max_size=stored_max, device=device)
 
-        # Persistent bookkeeping (mirrors the group attributes).
-        self._chunk_rows = attrs.get("chunk_rows")
-        self._schema: dict[str, dict] | None = attrs.get("schema")
-        self._env_names: list[str] = list(attrs.get("env_names", []))
-        self._episode_next = int(attrs.get("episode_next", 0))
-        self._runs = int(attrs.get("runs", 0))
-        self._write_count = int(attrs.get("write_count", 0))
-        self._writer_cursor = int(attrs.get("cursor", 0))
-        self._committed_len = int(attrs.get("len", 0))
+        self._sync_attrs(attrs)
         # This session's state.
         self._run: int | None = None  # allocated at the first write
         self._open_traj: dict[int, int] = {}  # traj key -> episode id, for open episodes
@@ -234,6 +226,7 @@ class ZarrStorage(LazyTensorStorage):
         self._meta_dirty = False
         self._flush_req = 0
         self._flush_done = 0
+        self._inflight = 0  # commits whose payload left the dirty set but is not written yet
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
 
@@ -303,6 +296,17 @@ class ZarrStorage(LazyTensorStorage):
             }
         )
 
+    def _sync_attrs(self, attrs: dict) -> None:
+        """Persistent bookkeeping, mirrored from the group attributes."""
+        self._chunk_rows = attrs.get("chunk_rows")
+        self._schema: dict[str, dict] | None = attrs.get("schema")
+        self._env_names: list[str] = list(attrs.get("env_names", []))
+        self._episode_next = int(attrs.get("episode_next", 0))
+        self._runs = int(attrs.get("runs", 0))
+        self._write_count = int(attrs.get("write_count", 0))
+        self._writer_cursor = int(attrs.get("cursor", 0))
+        self._committed_len = int(attrs.get("len", 0))
+
     def _grow(self, new_max: int) -> None:
         old = self.max_size
         if new_max < old:
@@ -325,8 +329,13 @@ class ZarrStorage(LazyTensorStorage):
         self._group.attrs.update({"max_size": new_max})
 
     def _load_rows(self, attrs: dict) -> None:
-        if attrs.get("journal") and not self.read_only:
-            self._replay_journal(attrs["journal"])
+        journal = attrs.get("journal")
+        if journal and not self.read_only:
+            attrs = self._replay_journal(journal)
+            self._sync_attrs(attrs)
+        elif journal:  # a reader applies the pending journal in RAM only
+            attrs = {**attrs, **journal["meta"]}
+            self._sync_attrs(attrs)
         n = int(attrs.get("len", 0))
         self._storage = self._allocate(self._schema)
         for path in self._schema:
@@ -334,6 +343,9 @@ class ZarrStorage(LazyTensorStorage):
                 self._storage.get(_zarr.path_to_key(path))[:n] = torch.from_numpy(
                     np.ascontiguousarray(self._group[path][:n])
                 )
+        if journal and self.read_only:
+            for path, rows, values in self._journal_chunks(journal):
+                self._storage.get(_zarr.path_to_key(path))[rows] = torch.from_numpy(np.ascontiguousarray(values))
         self.initialized = True
         self._len = n
         last = int(attrs.get("last_cursor", -1))
@@ -768,8 +780,12 @@ class ZarrStorage(LazyTensorStorage):
         """Writes dirty chunks (all of them, or only complete ones), then the metadata."""
         with self._cv:
             target = self._flush_req
+            # Overwriting committed rows (a wrapping ring) commits everything with
+            # its metadata, through the journal: rows on disk never lead the
+            # metadata, even by a chunk.
+            overwrite = any(lo < self._committed_len for lo in self._dirty.values())
+            everything = everything or overwrite
             chunks = sorted(self._dirty) if everything else sorted(self._complete_chunks())
-            overwrite = any(self._dirty[c] < self._committed_len for c in chunks)
             payload = {c: self._copy_chunk(c) for c in chunks}
             for c in chunks:
                 del self._dirty[c]
@@ -777,9 +793,10 @@ class ZarrStorage(LazyTensorStorage):
             if everything:
                 self._meta_dirty = False
                 self._first_dirty_time = None
+            self._inflight += 1
         try:
             if overwrite:
-                self._write_journal(payload)
+                self._write_journal(payload, meta)
             for c, arrays in payload.items():
                 lo = c * self._chunk_rows
                 for path, values in arrays.items():
@@ -791,6 +808,7 @@ class ZarrStorage(LazyTensorStorage):
                 self._group.attrs.update(update)
         except BaseException as err:  # surfaced to the foreground on its next call
             with self._cv:
+                self._inflight -= 1
                 self._error = err
                 self._flush_done = target
                 self._cv.notify_all()
@@ -798,6 +816,7 @@ class ZarrStorage(LazyTensorStorage):
                 raise
             return
         with self._cv:
+            self._inflight -= 1
             if meta is not None:
                 self._committed_len = meta["len"]
                 self._flush_done = max(self._flush_done, target)
@@ -824,7 +843,7 @@ class ZarrStorage(LazyTensorStorage):
             "env": self.env,
         }
 
-    def _write_journal(self, payload: dict[int, dict[str, np.ndarray]]) -> None:
+    def _write_journal(self, payload: dict[int, dict[str, np.ndarray]], meta: dict) -> None:
         """Redo log for chunks that overwrite committed rows (ring wrap-around).
 
         Chunk files are replaced atomically one array at a time; without this a
@@ -845,18 +864,25 @@ class ZarrStorage(LazyTensorStorage):
             for i, c in enumerate(chunks):
                 values = payload[c][path]
                 arr[i * rows : i * rows + len(values)] = values
-        self._group.attrs.update({"journal": {"chunks": chunks}})
+        # the journal is complete once this record (with the state it leads to) is committed
+        self._group.attrs.update({"journal": {"chunks": chunks, "meta": meta}})
 
-    def _replay_journal(self, journal: dict) -> None:
+    def _journal_chunks(self, journal: dict):
+        """Yields ``(path, row_slice, values)`` for every journalled chunk."""
         rows = int(self._group.attrs["chunk_rows"])
         for path in self._group.attrs["schema"]:
             src = self._group[f"_journal/{path}"]
-            dst = self._group[path]
+            size = self._group[path].shape[0]
             for i, c in enumerate(journal["chunks"]):
-                lo = c * rows
-                hi = min(lo + rows, dst.shape[0])
-                dst[lo:hi] = src[i * rows : i * rows + (hi - lo)]
-        self._group.attrs.update({"journal": None})
+                lo, hi = c * rows, min(c * rows + rows, size)
+                yield path, slice(lo, hi), src[i * rows : i * rows + (hi - lo)]
+
+    def _replay_journal(self, journal: dict) -> dict:
+        """Redoes an interrupted journalled commit; returns the attributes it led to."""
+        for path, rows, values in self._journal_chunks(journal):
+            self._group[path][rows] = values
+        self._group.attrs.update({**journal["meta"], "journal": None})
+        return self._group.attrs.asdict()
 
     # -- durability -----------------------------------------------------------
 
@@ -870,7 +896,7 @@ class ZarrStorage(LazyTensorStorage):
             self._raise_writer_error()
             return
         with self._cv:
-            if not self._dirty and not self._meta_dirty and self._flush_done >= self._flush_req:
+            if not (self._dirty or self._meta_dirty or self._inflight) and self._flush_done >= self._flush_req:
                 self._raise_writer_error()
                 return
             self._flush_req += 1
@@ -933,11 +959,7 @@ class ZarrStorage(LazyTensorStorage):
         attrs = self._group.attrs.asdict()
         if attrs.get("schema") is None:
             return 0
-        self._schema = attrs["schema"]
-        self._chunk_rows = attrs["chunk_rows"]
-        self._env_names = list(attrs.get("env_names", []))
-        self._write_count = int(attrs.get("write_count", 0))
-        self._writer_cursor = int(attrs.get("cursor", 0))
+        self._sync_attrs(attrs)
         self._load_rows(attrs)
         return len(self)
 
