@@ -717,6 +717,7 @@ class ZarrStorage(LazyTensorStorage):
         with self._cv:
             super()._empty()
             self._writer_cursor = 0
+            self._write_count = 0  # as TorchRL's writer restarts its count
             self._open_traj = {}
             self._meta_dirty = True
         self.flush()
