@@ -20,7 +20,7 @@ demo: install
 	$(PY) examples/demo.py
 
 test: install
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q
 
 bench: install
 	$(PY) benchmarks/bench_storage.py
