@@ -12,6 +12,7 @@ See ``docs/storage.md`` for the on-disk layout and the commit protocol.
 """
 from __future__ import annotations
 
+import asyncio
 import atexit
 import gc
 import json
@@ -30,6 +31,8 @@ from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
+from zarr.core.sync import sync as zarr_sync
+
 from . import _zarr
 from ._zarr import FORMAT_MARKER, FORMAT_VERSION
 
@@ -44,6 +47,9 @@ _TRAJ_KEY = ("collector", "traj_ids")
 # it equals the row position, so it is not stored (sample() adds it back).
 _DROPPED_KEYS = ("index",)
 _UNKNOWN_ENV = -1
+# How long the writer thread waits for extend() calls to pause before writing
+# complete chunks (seconds).
+_IDLE_GAP = 0.005
 
 # Stores opened for writing in this process, to give a clear error on a second
 # writer (and to let a dropped-but-uncollected one go first).
@@ -227,6 +233,8 @@ class ZarrStorage(LazyTensorStorage):
         self._flush_req = 0
         self._flush_done = 0
         self._inflight = 0  # commits whose payload left the dirty set but is not written yet
+        self._arrays: dict[str, Any] = {}  # zarr arrays by path, opened once
+        self._last_set_time = 0.0
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
 
@@ -325,6 +333,7 @@ class ZarrStorage(LazyTensorStorage):
             for path in self._schema:
                 arr = self._group[path]
                 arr.resize((new_max, *arr.shape[1:]))
+        self._arrays.clear()
         self.max_size = new_max
         self._group.attrs.update({"max_size": new_max})
 
@@ -361,9 +370,12 @@ class ZarrStorage(LazyTensorStorage):
     def _allocate(self, schema: dict[str, dict]) -> TensorDict:
         td = TensorDict({}, batch_size=[self.max_size], device=self.device)
         for path, spec in schema.items():
+            # empty, not zeros: the OS maps untouched pages lazily, so a 1M-row
+            # mirror costs nothing until rows arrive (rows past len are never read,
+            # and _copy_chunk zero-fills them before they reach the disk)
             td.set(
                 _zarr.path_to_key(path),
-                torch.zeros(
+                torch.empty(
                     (self.max_size, *spec["shape"]), dtype=_zarr.torch_dtype(spec["dtype"]), device=self.device
                 ),
             )
@@ -500,6 +512,7 @@ class ZarrStorage(LazyTensorStorage):
                 self._write_count += n
                 self._writer_cursor = (int(rows[-1]) + 1) % self.max_size
             self._mark_dirty(rows)
+            self._last_set_time = time.monotonic()
         self._kick()
 
     def _check_writable(self) -> None:
@@ -628,41 +641,36 @@ class ZarrStorage(LazyTensorStorage):
     def _episode_column(self, data: TensorDictBase, n: int) -> torch.Tensor:
         """Global episode ids: collector ``traj_ids`` (or done flags) mapped past every stored id."""
         done = data.get(_DONE_KEY, None)
-        done = (
-            torch.zeros(n, dtype=torch.bool) if done is None else done.reshape(n, -1).any(-1).cpu()
-        )
+        done = np.zeros(n, dtype=bool) if done is None else done.reshape(n, -1).any(-1).cpu().numpy()
         traj = data.get(_TRAJ_KEY, None)
         if traj is not None and traj.numel() == n:
-            keys = traj.reshape(n).long().cpu()
+            keys = traj.reshape(n).long().cpu().numpy()
         else:  # one stream of episodes split at done flags: keys -1, -2, ...
-            seg = done.long().cumsum(0) - done.long()
-            keys = -1 - seg
+            keys = -1 - (np.cumsum(done) - done)
+        # numpy, not torch: these arrays are tiny and this runs on every extend
+        uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+        last = n - 1 - np.unique(keys[::-1], return_index=True)[1]
         open_traj = self._open_traj
+        for k in [k for k in open_traj if k < 0]:  # a done-split stream only continues its -1
+            if k != -1:
+                open_traj.pop(k)
+        ids = np.empty(len(uniq), dtype=np.int64)
         next_id = self._episode_next
-        uniq = _unique_in_order(keys)
-        ids = {}
-        for k in uniq.tolist():
-            if k in open_traj:
-                ids[k] = open_traj[k]
+        for j in np.argsort(first):  # new ids in order of first appearance
+            key = int(uniq[j])
+            if key in open_traj:
+                ids[j] = open_traj[key]
             else:
-                ids[k] = next_id
+                ids[j] = next_id
                 next_id += 1
-        lut_keys = torch.tensor(list(ids), dtype=torch.long)
-        lut_vals = torch.tensor(list(ids.values()), dtype=torch.long)
-        order = lut_keys.argsort()
-        episode = lut_vals[order][torch.searchsorted(lut_keys[order], keys)]
-        # the last row of each key decides whether its episode stays open
-        for k in [k for k in open_traj if k < 0]:
-            open_traj.pop(k)
-        pos = torch.arange(n)
-        for k in uniq.tolist():
-            last = int(pos[keys == k][-1])
-            if done[last]:
-                open_traj.pop(k, None)
-            elif k >= 0 or last == n - 1:
-                open_traj[-1 if k < 0 else k] = ids[k]
+        open_traj.pop(-1, None)
+        for j, key in enumerate(uniq.tolist()):  # the last row of a key: does its episode stay open?
+            if done[last[j]]:
+                open_traj.pop(key, None)
+            elif key >= 0 or last[j] == n - 1:
+                open_traj[-1 if key < 0 else key] = int(ids[j])
         self._episode_next = next_id
-        return episode
+        return torch.from_numpy(ids[inv.reshape(-1)])
 
     def _rollback_writers(self, cursor) -> None:
         """Undoes the cursor move RoundRobinWriter made before calling a failing ``set``."""
@@ -767,8 +775,17 @@ class ZarrStorage(LazyTensorStorage):
                         self._first_dirty_time is None
                         or time.monotonic() - self._first_dirty_time >= self._commit_interval
                     )
-                    if flush or timer or self._complete_chunks():
+                    if flush or timer:
                         break
+                    if self._complete_chunks():
+                        # Complete chunks wait for a pause in the writes (the
+                        # commit_interval timer still bounds the wait): compressing
+                        # them holds the GIL in bursts that would slow extend().
+                        idle = time.monotonic() - self._last_set_time
+                        if idle >= _IDLE_GAP:
+                            break
+                        self._cv.wait(_IDLE_GAP - idle)
+                        continue
                     if not pending:
                         self._thread = None  # idle: let the storage be collected
                         return
@@ -798,10 +815,7 @@ class ZarrStorage(LazyTensorStorage):
         try:
             if overwrite:
                 self._write_journal(payload, meta)
-            for c, arrays in payload.items():
-                lo = c * self._chunk_rows
-                for path, values in arrays.items():
-                    self._group[path][lo : lo + len(values)] = values
+            self._write_chunks(payload)
             if meta is not None or overwrite:
                 update = dict(meta or {})
                 if overwrite:
@@ -823,13 +837,33 @@ class ZarrStorage(LazyTensorStorage):
                 self._flush_done = max(self._flush_done, target)
             self._cv.notify_all()
 
+    def _write_chunks(self, payload: dict[int, dict[str, np.ndarray]], prefix: str = "") -> None:
+        """Writes chunks of every array in one event-loop round trip (about 1.4x a loop of writes)."""
+        writes = []
+        for i, (c, arrays) in enumerate(payload.items()):
+            lo = (i if prefix else c) * self._chunk_rows
+            for path, values in arrays.items():
+                arr = self._arrays.get(prefix + path)
+                if arr is None:
+                    arr = self._arrays[prefix + path] = self._group[prefix + path]
+                writes.append(arr._async_array.setitem(slice(lo, lo + len(values)), values))
+
+        async def _all():
+            await asyncio.gather(*writes)
+
+        zarr_sync(_all())
+
     def _copy_chunk(self, c: int) -> dict[str, np.ndarray]:
         lo = c * self._chunk_rows
         hi = min(lo + self._chunk_rows, self.max_size)
-        return {
-            path: self._storage.get(_zarr.path_to_key(path))[lo:hi].cpu().numpy().copy()
-            for path in self._schema
-        }
+        valid = max(0, min(hi, len(self)) - lo)
+        out = {}
+        for path in self._schema:
+            rows = self._storage.get(_zarr.path_to_key(path))[lo:hi].cpu().numpy()
+            chunk = np.zeros_like(rows) if valid < hi - lo else np.empty_like(rows)
+            chunk[:valid] = rows[:valid]
+            out[path] = chunk
+        return out
 
     def _meta_snapshot(self) -> dict:
         last = self._last_cursor_index
@@ -854,7 +888,7 @@ class ZarrStorage(LazyTensorStorage):
         rows = self._chunk_rows
         for path in self._schema:
             spec = self._schema[path]
-            arr = self._group.create_array(
+            self._arrays[f"_journal/{path}"] = self._group.create_array(
                 f"_journal/{path}",
                 shape=(len(chunks) * rows, *spec["shape"]),
                 chunks=(rows, *spec["shape"]),
@@ -862,9 +896,7 @@ class ZarrStorage(LazyTensorStorage):
                 fill_value=0,
                 overwrite=True,
             )
-            for i, c in enumerate(chunks):
-                values = payload[c][path]
-                arr[i * rows : i * rows + len(values)] = values
+        self._write_chunks({c: payload[c] for c in chunks}, prefix="_journal/")
         # the journal is complete once this record (with the state it leads to) is committed
         self._group.attrs.update({"journal": {"chunks": chunks, "meta": meta}})
 
@@ -1051,10 +1083,4 @@ def _cursor_rows(cursor, max_size: int) -> torch.Tensor:
     return torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()
 
 
-def _unique_in_order(keys: torch.Tensor) -> torch.Tensor:
-    """Unique values of ``keys`` in order of first appearance."""
-    uniq, inv = torch.unique(keys, return_inverse=True)
-    first = torch.full((len(uniq),), len(keys), dtype=torch.long).scatter_reduce(
-        0, inv, torch.arange(len(keys)), reduce="amin"
-    )
-    return uniq[first.argsort()]
+
