@@ -7,7 +7,8 @@ rotated every repetition); one thread (``torch.set_num_threads(1)``); medians.
   counts the time spent inside the extend calls; durable rows/s (ZarrStorage) counts
   from the first extend until ``flush()`` returns after the last one.
 * sample: ``rb.sample(256)`` (uniform), and ``HERReplayBuffer.sample(256)``
-  (future strategy, her_ratio 0.8) on the same storage.
+  (future strategy, her_ratio 0.8) on the same storage; every storage of a
+  repetition is filled first, then sampling is timed in interleaved rounds.
 * size on disk (Zarr store vs LazyMemmapStorage files), and the time to reopen the
   store in a fresh process (``ZarrStorage(path)``; page cache warm).
 
@@ -57,6 +58,7 @@ def configs(with_variants: bool):
         out.update(
             {
                 "Zarr zstd": lambda d, n: ZarrStorage(d, n, compressor="zstd"),
+                "Zarr zstd level 1": lambda d, n: ZarrStorage(d, n, compressor="zstd", compression_level=1),
                 "Zarr no compression": lambda d, n: ZarrStorage(d, n, compressor=None),
                 "Zarr chunk_rows=4096": lambda d, n: ZarrStorage(d, n, chunk_rows=4096),
                 "Zarr chunk_rows=65536": lambda d, n: ZarrStorage(d, n, chunk_rows=65536),
@@ -87,7 +89,8 @@ def timed_median(fn, n, warmup=3):
     return statistics.median(times)
 
 
-def run_one(name, make, data, scratch: Path, n_samples: int, keep: bool, progress: tqdm):
+def extend_one(name, make, data, scratch: Path, progress: tqdm):
+    """Fills a fresh storage; returns its timings, the storage, its buffer and its path."""
     rows = data.shape[0]
     path = scratch / name.replace(" ", "_").replace("=", "")
     shutil.rmtree(path, ignore_errors=True)
@@ -116,24 +119,58 @@ def run_one(name, make, data, scratch: Path, n_samples: int, keep: bool, progres
         "durable_rows_s": rows / (t_durable - t_start),
         "flush_after_last_extend_s": t_durable - t_last,
     }
-    res["sample_ms"] = 1e3 * timed_median(lambda: rb.sample(), n_samples)
-    her = HERReplayBuffer(
-        fetch_reward_fn,
-        storage=storage,
-        batch_size=SAMPLE_BS,
-        achieved_goal_key=("next", "achieved_goal"),
-    )
-    res["her_sample_ms"] = 1e3 * timed_median(lambda: her.sample(), max(20, n_samples // 4))
-    if name != "LazyTensorStorage":
+    if type(storage) is not LazyTensorStorage:  # on disk
         res["disk_bytes"], res["disk_apparent_bytes"] = disk_bytes(path)
     if is_zarr:
         res["chunk_rows"] = storage.chunk_rows
-        storage.close()
-    del rb, her, storage
+    return res, storage, rb, path
+
+
+def sample_all(bufs: dict, n_samples: int, rounds: int = 10) -> dict:
+    """Median sample(256) time of every buffer, rounds interleaved across buffers."""
+    names = list(bufs)
+    times = {n: [] for n in names}
+    per_round = max(1, n_samples // rounds)
+    for n in names:  # warm up (HER builds its episode cache here)
+        for _ in range(3):
+            bufs[n].sample()
+    for r in range(rounds):
+        for n in names[r % len(names) :] + names[: r % len(names)]:
+            rb = bufs[n]
+            for _ in range(per_round):
+                t0 = time.perf_counter()
+                rb.sample()
+                times[n].append(time.perf_counter() - t0)
+    return {n: 1e3 * statistics.median(t) for n, t in times.items()}
+
+
+def run_repetition(cfgs: dict, order: list, data, scratch: Path, n_samples: int, keep: str | None, progress):
+    """Extends every storage (in ``order``), then times sampling interleaved across them."""
+    live, results, kept = {}, {}, None
+    for name in order:
+        progress.set_postfix_str(name)
+        res, storage, rb, path = extend_one(name, cfgs[name], data, scratch, progress)
+        live[name] = (storage, rb, path)
+        results[name] = res
+    progress.set_postfix_str("sampling")
+    uniform = sample_all({n: v[1] for n, v in live.items()}, n_samples)
+    hers = {
+        n: HERReplayBuffer(fetch_reward_fn, storage=v[0], batch_size=SAMPLE_BS, achieved_goal_key=("next", "achieved_goal"))
+        for n, v in live.items()
+    }
+    her = sample_all(hers, max(40, n_samples // 4))
+    for name, (storage, rb, path) in live.items():
+        results[name]["sample_ms"] = uniform[name]
+        results[name]["her_sample_ms"] = her[name]
+        if isinstance(storage, ZarrStorage):
+            storage.close()
+        if name == keep:
+            kept = path
+        else:
+            shutil.rmtree(path, ignore_errors=True)
+    del live, hers
     gc.collect()
-    if not keep:
-        shutil.rmtree(path, ignore_errors=True)
-    return res, path
+    return results, kept
 
 
 REOPEN_CODE = r"""
@@ -190,35 +227,40 @@ def main():
     kept = None
     with tqdm(total=total, unit="rows", unit_scale=True, mininterval=2.0, desc="extend") as progress:
         for rep in range(args.repeats):
+            progress.set_description(f"rep {rep + 1}/{args.repeats}")
             order = names[rep % len(names) :] + names[: rep % len(names)]
-            for name in order:
-                progress.set_postfix_str(f"rep {rep + 1}/{args.repeats} {name}")
-                keep = name == DEFAULT and rep == args.repeats - 1
-                res, path = run_one(name, cfgs[name], data, scratch, args.samples, keep, progress)
-                results[name].append(res)
-                if keep:
-                    kept = path
+            keep = DEFAULT if rep == args.repeats - 1 else None
+            res, path = run_repetition(cfgs, order, data, scratch, args.samples, keep, progress)
+            for name in names:
+                results[name].append(res[name])
+            kept = path or kept
     reopen = reopen_times(kept, 3) if kept is not None else None
 
-    base_mm = median_of(results, "LazyMemmapStorage", "extend_fg_rows_s")
-    base_lts_sample = median_of(results, "LazyTensorStorage", "sample_ms")
-    base_lts_her = median_of(results, "LazyTensorStorage", "her_sample_ms")
-    mm_disk = median_of(results, "LazyMemmapStorage", "disk_bytes")
+    def ratio(name, key, base, base_key=None, invert=False):
+        """Median over repetitions of the same-repetition ratio name/base."""
+        vals = []
+        for r, b in zip(results[name], results[base]):
+            if key in r and (base_key or key) in b:
+                x, y = r[key], b[base_key or key]
+                vals.append(y / x if invert else x / y)
+        return statistics.median(vals) if vals else None
+
     summary = {}
     for name in names:
         s = {k: median_of(results, name, k) for k in results[name][0]}
-        s["fg_vs_memmap"] = s["extend_fg_rows_s"] / base_mm
-        s["durable_vs_memmap"] = s["durable_rows_s"] / base_mm
-        s["sample_speed_vs_lts"] = base_lts_sample / s["sample_ms"]
-        s["her_speed_vs_lts"] = base_lts_her / s["her_sample_ms"]
+        s["fg_vs_memmap"] = ratio(name, "extend_fg_rows_s", "LazyMemmapStorage")
+        s["durable_vs_memmap"] = ratio(name, "durable_rows_s", "LazyMemmapStorage", "extend_fg_rows_s")
+        s["sample_speed_vs_lts"] = ratio(name, "sample_ms", "LazyTensorStorage", invert=True)
+        s["her_speed_vs_lts"] = ratio(name, "her_sample_ms", "LazyTensorStorage", invert=True)
         if s.get("disk_bytes"):
-            s["disk_vs_memmap"] = s["disk_bytes"] / mm_disk
+            s["disk_vs_memmap"] = ratio(name, "disk_bytes", "LazyMemmapStorage")
         summary[name] = s
 
     bpr = bytes_per_row(data)
     print(f"\n{args.rows:,} FetchPush-v4 transitions ({bpr} B each, {bpr * args.rows / 2**20:.0f} MiB), "
           f"extend in batches of {BATCH}, sample({SAMPLE_BS}); median of {args.repeats} interleaved "
-          f"repetitions; torch threads=1; {os.cpu_count()} CPUs.\n")
+          f"repetitions; ratios are medians of same-repetition ratios (durable: vs LazyMemmapStorage's "
+          f"extend rate); torch threads=1; {os.cpu_count()} CPUs.\n")
     print("| storage | extend rows/s (foreground) | vs memmap | durable rows/s | vs memmap | "
           "sample(256) ms | speed vs LTS | HER sample(256) ms | speed vs LTS | disk MiB | vs memmap |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
