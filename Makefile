@@ -25,6 +25,8 @@ test: install
 bench: install
 	$(PY) benchmarks/bench_storage.py
 	$(PY) benchmarks/bench_recall.py
+	$(PY) benchmarks/bench_sampler.py
+	$(PY) benchmarks/bench_collector.py
 
 clean:
 	rm -rf memory outputs .pytest_cache
