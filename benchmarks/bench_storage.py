@@ -57,8 +57,9 @@ def configs(with_variants: bool):
     if with_variants:
         out.update(
             {
-                "Zarr zstd": lambda d, n: ZarrStorage(d, n, compressor="zstd"),
+                "Zarr blosc level 3": lambda d, n: ZarrStorage(d, n, compressor="blosc", compression_level=3),
                 "Zarr zstd level 1": lambda d, n: ZarrStorage(d, n, compressor="zstd", compression_level=1),
+                "Zarr zstd level 3": lambda d, n: ZarrStorage(d, n, compressor="zstd", compression_level=3),
                 "Zarr no compression": lambda d, n: ZarrStorage(d, n, compressor=None),
                 "Zarr chunk_rows=4096": lambda d, n: ZarrStorage(d, n, chunk_rows=4096),
                 "Zarr chunk_rows=65536": lambda d, n: ZarrStorage(d, n, chunk_rows=65536),
@@ -123,6 +124,7 @@ def extend_one(name, make, data, scratch: Path, progress: tqdm):
         res["disk_bytes"], res["disk_apparent_bytes"] = disk_bytes(path)
     if is_zarr:
         res["chunk_rows"] = storage.chunk_rows
+        res["codec"] = f"{storage._compressor} level {storage._compression_level}"
     return res, storage, rb, path
 
 
@@ -202,6 +204,16 @@ def reopen_times(path: Path, repeats: int):
     return {k: statistics.median(o[k] for o in outs) for k in outs[0]}
 
 
+def _git_state():
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "torchrl_robotmem"], capture_output=True, text=True).stdout.strip()
+        return {"head": head, "package_modified": bool(dirty)}
+    except OSError:
+        return None
+
+
 def median_of(results, name, key):
     vals = [r[key] for r in results[name] if key in r]
     return statistics.median(vals) if vals else None
@@ -247,7 +259,9 @@ def main():
 
     summary = {}
     for name in names:
-        s = {k: median_of(results, name, k) for k in results[name][0]}
+        s = {k: median_of(results, name, k) for k in results[name][0] if k != "codec"}
+        if "codec" in results[name][0]:
+            s["codec"] = results[name][0]["codec"]
         s["fg_vs_memmap"] = ratio(name, "extend_fg_rows_s", "LazyMemmapStorage")
         s["durable_vs_memmap"] = ratio(name, "durable_rows_s", "LazyMemmapStorage", "extend_fg_rows_s")
         s["sample_speed_vs_lts"] = ratio(name, "sample_ms", "LazyTensorStorage", invert=True)
@@ -271,7 +285,7 @@ def main():
         durr = f"{s['durable_vs_memmap']:.2f}x" if zarr_like else ""
         disk = f"{s['disk_bytes'] / 2**20:,.0f}" if s.get("disk_bytes") else "RAM"
         diskr = f"{s['disk_vs_memmap']:.2f}x" if s.get("disk_vs_memmap") else ""
-        label = f"{name} (chunk_rows={s['chunk_rows']:.0f})" if name == DEFAULT else name
+        label = f"{name} default ({s['codec']}, chunk_rows={s['chunk_rows']:.0f})" if name == DEFAULT else name
         print(f"| {label} | {s['extend_fg_rows_s']:,.0f} | {s['fg_vs_memmap']:.2f}x | {dur} | {durr} | "
               f"{s['sample_ms']:.2f} | {s['sample_speed_vs_lts']:.2f}x | {s['her_sample_ms']:.2f} | "
               f"{s['her_speed_vs_lts']:.2f}x | {disk} | {diskr} |")
@@ -279,6 +293,9 @@ def main():
         print(f"\nReopen {args.rows:,}-row store in a fresh process (median of 3, page cache warm): "
               f"ZarrStorage(path) {reopen['open_s']:.2f} s (writable), read_only {reopen['open_read_only_s']:.2f} s; "
               f"imports {reopen['import_s']:.2f} s.")
+    per_rep = ", ".join(f"{r['extend_fg_rows_s'] / 1e3:,.0f}k" for r in results[DEFAULT])
+    print(f"\nZarrStorage default, foreground rows/s per repetition: {per_rep} (bimodal when a timed "
+          f"commit does or does not overlap the extend loop)")
     d = summary[DEFAULT]
     targets = {
         "foreground >= 0.8x memmap": d["fg_vs_memmap"] >= 0.8,
@@ -295,6 +312,7 @@ def main():
         json.dump(
             {
                 "rows": args.rows,
+                "git": _git_state(),
                 "repeats": args.repeats,
                 "batch": BATCH,
                 "sample_batch": SAMPLE_BS,
