@@ -406,14 +406,18 @@ class ZarrStorage(LazyTensorStorage):
     def _close_episode_at(self, row: int) -> None:
         """Ends the open episode at ``row`` (done/truncated), for writers that learn of a boundary late."""
         with self._cv:
-            rows = torch.tensor([row])
+            self._open_traj.pop(-1, None)
+        self._mark_truncated(torch.tensor([row]))
+        self._kick()
+
+    def _mark_truncated(self, rows: torch.Tensor) -> None:
+        """Sets ``("next", "done")`` and ``("next", "truncated")`` on ``rows`` (RAM, then disk)."""
+        with self._cv:
             self._storage.get(_DONE_KEY)[rows] = True
             if _TRUNCATED_KEY in self._storage.keys(True, True):
                 self._storage.get(_TRUNCATED_KEY)[rows] = True
-            self._open_traj.pop(-1, None)
             self._mark_dirty(rows)
         self._bump_mutation_revision()
-        self._kick()
 
     def _close_open_episodes(self) -> None:
         """Marks the last row of every episode the previous run left open as done/truncated.
@@ -435,15 +439,8 @@ class ZarrStorage(LazyTensorStorage):
         )
         last_rows = (last + self._writer_cursor) % self.max_size if self._is_full else last
         done = self._storage.get(_DONE_KEY)[last_rows].reshape(len(last_rows), -1).any(-1)
-        to_close = last_rows[~done]
-        if len(to_close) == 0:
-            return
-        with self._cv:
-            self._storage.get(_DONE_KEY)[to_close] = True
-            if _TRUNCATED_KEY in self._storage.keys(True, True):
-                self._storage.get(_TRUNCATED_KEY)[to_close] = True
-            self._mark_dirty(to_close)
-        self._bump_mutation_revision()
+        if not done.all():
+            self._mark_truncated(last_rows[~done])
 
     # -- properties -----------------------------------------------------------
 
