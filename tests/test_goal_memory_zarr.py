@@ -13,46 +13,20 @@ import numpy as np
 import pytest
 import torch
 import zarr
-from tensordict import TensorDict
 from torchrl.data import HERReplayBuffer, RandomSampler, TensorDictReplayBuffer
 
+from _rows import fetch_rows  # no env / run / episode columns: the storage writes them
 from torchrl_robotmem import GoalIndex, GoalSimilaritySampler, ZarrStorage, make_reward_fn, recall
 
 torch.set_num_threads(1)
 
 GOAL = ("next", "achieved_goal")
 SUCCESS = ("next", "is_success")
-EP_LEN = 50
 
 
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)  # HER draws its "future" offsets from the global generator
-
-
-def fetch_rows(n, gen, start=0, success_rate=0.2):
-    """FetchPush-shaped transitions (no tag columns: the storage writes episode/run/env)."""
-    goals = torch.rand(n, 3, generator=gen)
-    step = torch.arange(start, start + n) % EP_LEN
-    done = (step == EP_LEN - 1).unsqueeze(-1)
-    success = (torch.rand(n, generator=gen) < success_rate).float()
-    return TensorDict(
-        {
-            "observation": torch.randn(n, 25, generator=gen),
-            "achieved_goal": goals.roll(1, 0),
-            "desired_goal": torch.rand(n, 3, generator=gen),
-            "action": torch.rand(n, 4, generator=gen) * 2 - 1,
-            ("next", "observation"): torch.randn(n, 25, generator=gen),
-            ("next", "achieved_goal"): goals,
-            ("next", "desired_goal"): torch.rand(n, 3, generator=gen),
-            ("next", "reward"): success.unsqueeze(-1) - 1,
-            ("next", "done"): done,
-            ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
-            ("next", "truncated"): done,
-            ("next", "is_success"): success,
-        },
-        batch_size=[n],
-    )
 
 
 def zarr_rb(path, max_size=None, *, sampler=None, batch_size=64, **kw):

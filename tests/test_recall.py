@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import gc
 import math
+from functools import partial
 
 import numpy as np
 import pytest
@@ -10,6 +11,8 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
+import _rows
+from _rows import unit_quat
 from torchrl_robotmem.metrics import EuclideanMetric, PoseMetric, get_metric
 from torchrl_robotmem.goal_index import _INDEX_CACHE, GoalIndex, recall
 
@@ -17,44 +20,8 @@ torch.set_num_threads(1)
 
 GOAL = ("next", "achieved_goal")
 ENV_NAMES = ("FetchPush-v4", "FetchSlide-v4", "FetchPickAndPlace-v4")
-
-
-def unit_quat(n, gen):
-    q = torch.randn(n, 4, generator=gen)
-    return q / q.norm(dim=1, keepdim=True)
-
-
-def fetch_rows(n, gen, start=0, goal_dim=3, success_rate=0.2):
-    """FetchPush-shaped transitions (goal_dim 7: pose goals, 15: HandReach goals)."""
-    if goal_dim == 7:
-        goals = torch.cat([torch.rand(n, 3, generator=gen) * 0.05, unit_quat(n, gen)], 1)
-    else:
-        goals = torch.rand(n, goal_dim, generator=gen)
-    step = torch.arange(start, start + n) % 50
-    done = (step == 49).unsqueeze(-1)
-    success = (torch.rand(n, generator=gen) < success_rate).float()
-    return TensorDict(
-        {
-            "observation": torch.randn(n, 25, generator=gen),
-            "achieved_goal": goals.roll(1, 0),
-            "desired_goal": torch.rand(n, goal_dim, generator=gen),
-            "action": torch.rand(n, 4, generator=gen) * 2 - 1,
-            "is_success": success.roll(1, 0),
-            "done": torch.zeros(n, 1, dtype=torch.bool),
-            "env": torch.randint(0, 3, (n,), generator=gen),
-            "run": torch.randint(0, 2, (n,), generator=gen),
-            "episode": torch.arange(start, start + n) // 50,
-            ("next", "observation"): torch.randn(n, 25, generator=gen),
-            ("next", "achieved_goal"): goals,
-            ("next", "desired_goal"): torch.rand(n, goal_dim, generator=gen),
-            ("next", "reward"): success.unsqueeze(-1) - 1,
-            ("next", "done"): done,
-            ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
-            ("next", "truncated"): done,
-            ("next", "is_success"): success,
-        },
-        batch_size=[n],
-    )
+# FetchPush-shaped rows tagged as a ZarrStorage would tag them: env (codes into ENV_NAMES), run, episode
+fetch_rows = partial(_rows.fetch_rows, envs=len(ENV_NAMES), tags=True)
 
 
 def make_rb(n, capacity=None, gen=None, goal_dim=3, storage_cls=LazyTensorStorage):

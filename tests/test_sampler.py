@@ -2,50 +2,27 @@
 from __future__ import annotations
 
 import json
+from functools import partial
 
 import pytest
 import torch
-from tensordict import TensorDict
 from torchrl.data import HERReplayBuffer, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
+import _rows
 from torchrl_robotmem.goal_index import GoalIndex
 from torchrl_robotmem.sampler import GoalSimilaritySampler
 
 torch.set_num_threads(1)
 
 GOAL = ("next", "achieved_goal")
+ENV_NAMES = ("FetchPush-v4", "FetchSlide-v4")
+# FetchPush-shaped rows with an env column (codes into ENV_NAMES)
+fetch_rows = partial(_rows.fetch_rows, envs=len(ENV_NAMES))
 
 
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)  # buffers without a generator draw from the global one
-ENV_NAMES = ("FetchPush-v4", "FetchSlide-v4")
-
-
-def fetch_rows(n, gen, start=0, success_rate=0.2):
-    """FetchPush-shaped transitions: observation 25, goals 3, action 4, done every 50 steps."""
-    goals = torch.rand(n, 3, generator=gen)
-    step = torch.arange(start, start + n) % 50
-    done = (step == 49).unsqueeze(-1)
-    success = (torch.rand(n, generator=gen) < success_rate).float()
-    return TensorDict(
-        {
-            "observation": torch.randn(n, 25, generator=gen),
-            "achieved_goal": torch.cat([goals[:1], goals[:-1]]),
-            "desired_goal": torch.rand(n, 3, generator=gen),
-            "action": torch.rand(n, 4, generator=gen) * 2 - 1,
-            "env": torch.randint(0, 2, (n,), generator=gen),
-            ("next", "observation"): torch.randn(n, 25, generator=gen),
-            ("next", "achieved_goal"): goals,
-            ("next", "desired_goal"): torch.rand(n, 3, generator=gen),
-            ("next", "reward"): success.unsqueeze(-1) - 1,
-            ("next", "done"): done,
-            ("next", "terminated"): torch.zeros(n, 1, dtype=torch.bool),
-            ("next", "truncated"): done,
-            ("next", "is_success"): success,
-        },
-        batch_size=[n],
-    )
 
 
 def make_rb(sampler, n=4000, capacity=8000, batch_size=512, seed=0, **kw):
