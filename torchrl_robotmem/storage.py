@@ -524,15 +524,15 @@ class ZarrStorage(LazyTensorStorage):
         first_write = not self.initialized
         if first_write:
             self._init_schema(data if _is_int_cursor(cursor) else data[0])
-        rows = _cursor_rows(cursor, self.max_size)
+        rows = dirty = _cursor_rows(cursor, self.max_size)
         if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
-            cursor = slice(int(rows[0]), int(rows[-1]) + 1)  # a view copy: ~2x an index_put
+            cursor = dirty = slice(int(rows[0]), int(rows[-1]) + 1)  # a view copy: ~2x an index_put
         with self._cv:
             super().set(cursor, data, set_cursor=set_cursor)
             if set_cursor:
                 self._write_count += n
                 self._writer_cursor = (int(rows[-1]) + 1) % self.max_size
-            self._mark_dirty(rows)
+            self._mark_dirty(dirty)
             self._last_set_time = time.monotonic()
         self._kick()
 
@@ -770,14 +770,14 @@ class ZarrStorage(LazyTensorStorage):
 
     # -- background commit ----------------------------------------------------
 
-    def _mark_dirty(self, rows: torch.Tensor) -> None:
-        chunks = torch.div(rows, self._chunk_rows, rounding_mode="floor")
-        if len(rows) and bool((rows[1:] - rows[:-1] == 1).all()):
-            lo_chunk, hi_chunk = int(chunks[0]), int(chunks[-1])
-            for c in range(lo_chunk, hi_chunk + 1):
-                lo = max(int(rows[0]), c * self._chunk_rows)
+    def _mark_dirty(self, rows: torch.Tensor | slice) -> None:
+        """Records the chunks ``rows`` touched (a slice: contiguous rows, as ``set`` found them)."""
+        if isinstance(rows, slice):
+            for c in range(rows.start // self._chunk_rows, (rows.stop - 1) // self._chunk_rows + 1):
+                lo = max(rows.start, c * self._chunk_rows)
                 self._dirty[c] = min(self._dirty.get(c, lo), lo)
         else:
+            chunks = torch.div(rows, self._chunk_rows, rounding_mode="floor")
             for c, r in zip(chunks.tolist(), rows.tolist()):
                 self._dirty[c] = min(self._dirty.get(c, r), r)
         if self._first_dirty_time is None:
