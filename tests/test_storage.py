@@ -131,13 +131,37 @@ def test_reader_sees_a_consistent_prefix_while_writing(tmp_path, transitions):
     writer.storage.close()
 
 
-def test_second_writer_is_refused(tmp_path, transitions):
+def test_second_writable_handle_in_one_process_takes_the_writer_over(tmp_path, transitions):
+    """A notebook cell re-run: the earlier handle (still referenced) hands its writer over."""
     path = tmp_path / "m.zarr"
-    s = ZarrStorage(path, 100)
-    with pytest.raises(RuntimeError, match="already open for writing"):
-        ZarrStorage(path)
-    s.close()
-    ZarrStorage(path).close()  # released by close()
+    rb1 = _rb(ZarrStorage(path, 100))
+    rb1.extend(transitions(10))  # not flushed yet: the handover must flush it
+    keep = rb1.storage  # e.g. a GoalIndex still refers to it
+    rb2 = _rb(ZarrStorage(path))
+    assert len(rb2) == 10
+    assert torch.equal(rb2.storage["observation"][:10], transitions(10)["observation"])
+    rb2.extend(transitions(5, 10))
+    assert len(rb2) == 15
+    # the old handle is a read-only snapshot now; writing through it says why
+    assert len(keep) == 10 and torch.equal(keep["observation"][:10], transitions(10)["observation"])
+    with pytest.raises(RuntimeError, match="handed its writer"):
+        rb1.extend(transitions(1))
+    assert len(rb1) == 10  # the refused write did not move the old buffer either
+    keep.close()  # closing the retired handle does not touch the new writer
+    rb2.extend(transitions(5, 15))
+    rb2.storage.close()
+    assert len(ZarrStorage(path, read_only=True)) == 20
+
+
+def test_failed_second_open_hands_the_writer_back(tmp_path, transitions):
+    path = tmp_path / "m.zarr"
+    rb = _rb(ZarrStorage(path, 100))
+    rb.extend(transitions(10))
+    with pytest.raises(ValueError, match="shrink"):
+        ZarrStorage(path, 50)
+    rb.extend(transitions(10, 10))  # the first handle still writes
+    rb.storage.close()
+    assert len(ZarrStorage(path, read_only=True)) == 20
 
 
 def test_context_manager_and_background_false(tmp_path, transitions):

@@ -45,7 +45,9 @@ class RobotMemory:
 
     Args:
         path (str or os.PathLike): the store (a directory, a ``*.zip`` or a Zarr
-            store URL). Created when missing.
+            store URL). Created when missing. robotmem's spelling
+            ``RobotMemory(db="gym_robotics.db")`` is accepted too (the store is
+            then a directory named ``gym_robotics.db``).
         max_size (int, optional): capacity in transitions when the store is
             created. Defaults to 1_000_000; ignored for an existing store
             (whose capacity is kept) unless larger (then it grows, see
@@ -79,14 +81,21 @@ class RobotMemory:
 
     def __init__(
         self,
-        path: str | os.PathLike,
+        path: str | os.PathLike | None = None,
         max_size: int | None = None,
         *,
+        db: str | os.PathLike | None = None,
         env: str | None = None,
         read_only: bool = False,
         metric: str = "euclidean",
         **storage_kwargs: Any,
     ) -> None:
+        if (path is None) == (db is None):
+            raise TypeError(
+                "RobotMemory needs the store's location: RobotMemory('memory/fetch.zarr') or "
+                "robotmem's spelling RobotMemory(db='gym_robotics.db'), not both."
+            )
+        path = db if path is None else path
         if max_size is None and not read_only and not _store_exists(path):
             max_size = 1_000_000
         self.storage = ZarrStorage(path, max_size, env=env, read_only=read_only, **storage_kwargs)
@@ -131,18 +140,17 @@ class RobotMemory:
         done = bool(metadata.pop("done", False)) or terminated or truncated
         success = float(np.asarray(metadata.pop("is_success", 0.0)))
         env = metadata.pop("env", None)
-        if env is not None:
-            self.storage.env = str(env)
         if metadata:
             raise KeyError(
                 f"Unknown metadata keys {sorted(metadata)}; expected achieved_goal, desired_goal, "
                 f"is_success, env, terminated, truncated, done."
             )
-        if self._prev is not None and not torch.equal(self._prev["desired_goal"], step["desired_goal"]):
-            # a new goal means a new episode, even if the caller never said so
-            self.storage._close_episode_at(self._prev_row)
-            self._prev = None
-        before = self._prev if self._prev is not None else step
+        # a new goal means a new episode, even if the caller never said so
+        new_goal = self._prev is not None and (
+            self._prev["desired_goal"].shape != step["desired_goal"].shape
+            or not torch.equal(self._prev["desired_goal"], step["desired_goal"])
+        )
+        before = self._prev if self._prev is not None and not new_goal else step
         td = TensorDict(
             {
                 "observation": before["observation"],
@@ -160,7 +168,16 @@ class RobotMemory:
             },
             [],
         )
-        row = int(self.buffer.add(self._fit_schema(td)))
+        td = self._fit_schema(td)
+        # Validate before any side effect: a refused transition leaves the memory
+        # (rows, open episode, env names) exactly as it was.
+        self.storage.check_schema(td.unsqueeze(0))
+        if env is not None:
+            self.storage.env = str(env)
+        if new_goal:
+            self.storage._close_episode_at(self._prev_row)
+            self._prev = None
+        row = int(self.buffer.add(td))
         self._prev, self._prev_row = (None, None) if done else (step, row)
         return row
 

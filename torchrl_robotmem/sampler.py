@@ -40,7 +40,8 @@ def _key_from_json(key) -> NestedKey:
 class GoalSimilaritySampler(Sampler):
     """Samples transitions whose achieved goals are near query goals.
 
-    Without a query it samples uniformly, like :class:`~torchrl.data.RandomSampler`.
+    Without a query it samples uniformly, like :class:`~torchrl.data.RandomSampler`,
+    over the rows that pass the ``success_only`` / ``env`` filters.
     With a query (one goal or ``[Q, goal_dim]`` goals, e.g. the goals the envs
     are chasing now) the batch is spread evenly over the ``Q`` queries; for
     each query the ``num_candidates`` nearest stored rows are found with an
@@ -244,7 +245,10 @@ class GoalSimilaritySampler(Sampler):
         if len(storage) == 0:
             raise RuntimeError(_EMPTY_STORAGE_ERROR)
         if self._query is None:
-            return storage._rand_given_ndim(batch_size), {}
+            if not self.success_only and self.env is None:
+                return storage._rand_given_ndim(batch_size), {}
+            # no query, but the filters still hold: uniform over the matching rows
+            return self._uniform_rows(self._index(storage), storage, batch_size).to(torch.long), {}
         index = self._index(storage)
         probs, cand_idx, cand_dist = self._candidates(index, storage)
         Q = probs.shape[0]

@@ -13,8 +13,6 @@ See ``docs/storage.md`` for the on-disk layout and the commit protocol.
 from __future__ import annotations
 
 import asyncio
-import atexit
-import gc
 import json
 import math
 import os
@@ -33,7 +31,7 @@ from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
 from zarr.core.sync import sync as zarr_sync
 
-from . import _zarr
+from . import _lifecycle, _zarr
 from ._zarr import FORMAT_MARKER, FORMAT_VERSION
 
 __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
@@ -51,8 +49,8 @@ _UNKNOWN_ENV = -1
 # complete chunks (seconds).
 _IDLE_GAP = 0.005
 
-# Stores opened for writing in this process, to give a clear error on a second
-# writer (and to let a dropped-but-uncollected one go first).
+# The writable handle of each store opened for writing in this process. A new
+# writable handle on the same store takes the writer over from the old one.
 _OPEN_WRITERS: dict[str, weakref.ref] = {}
 
 
@@ -188,12 +186,14 @@ class ZarrStorage(LazyTensorStorage):
         self._lock_file = None
         self._closed = False
 
-        if not self.read_only:
-            self._claim_writer()
+        self._retired_by: str | None = None
+        previous = self._claim_writer() if not self.read_only else None
         try:
             self._open(path, max_size, env=env, chunk_rows=chunk_rows, storage_options=storage_options, device=device)
         except BaseException:
             self._release()
+            if previous is not None:
+                previous._take_back_writer(self)
             raise
 
     def _open(self, path, max_size, *, env, chunk_rows, storage_options, device) -> None:
@@ -249,25 +249,52 @@ class ZarrStorage(LazyTensorStorage):
         if env is not None and not self.read_only:
             self.env = env
         if not self.read_only:
-            atexit.register(_close_at_exit, weakref.ref(self))
+            _lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._schema is not None:
                 self._close_open_episodes()
                 self.flush()
 
     # -- creation / reopening -------------------------------------------------
 
-    def _claim_writer(self) -> None:
+    def _claim_writer(self) -> ZarrStorage | None:
+        """Takes the writer over from an earlier writable handle on the same store in this process.
+
+        Re-running a notebook cell (``rb = ...ZarrStorage(path)``) or dropping a
+        handle that an index still refers to must not lock the user out of their
+        own store: the earlier handle is flushed and becomes a read-only
+        snapshot. Returns it (to hand the writer back if this open fails).
+        """
         key = str(self.path)
         ref = _OPEN_WRITERS.get(key)
-        if ref is not None and ref() is not None:
-            gc.collect()  # a dropped storage in a reference cycle lets go here
-            other = ref()
-            if other is not None and not other._closed:
-                raise RuntimeError(
-                    f"{self.path!r} is already open for writing in this process. Call .close() "
-                    f"on the other ZarrStorage first, or open this one with read_only=True."
-                )
+        other = ref() if ref is not None else None
         _OPEN_WRITERS[key] = weakref.ref(self)
+        if other is None or other._closed or other.read_only:
+            return None
+        other._hand_over_writer()
+        return other
+
+    def _hand_over_writer(self) -> None:
+        with _lifecycle.critical():
+            self.flush()
+            self._retired_by = "a newer writable ZarrStorage on the same store in this process"
+            self._closed = True
+            if self._lock_file is not None:
+                self._lock_file.release()
+                self._lock_file = None
+
+    def _take_back_writer(self, failed: ZarrStorage) -> None:
+        """Undoes :meth:`_hand_over_writer` when the newer handle failed to open."""
+        key = str(self.path)
+        ref = _OPEN_WRITERS.get(key)
+        if ref is None or ref() is None or ref() is failed:
+            _OPEN_WRITERS[key] = weakref.ref(self)
+        if self._local_dir is not None:
+            try:
+                self._lock_file = _zarr.WriterLock(self._local_dir)
+            except RuntimeError:
+                return  # another process took it meanwhile: stay a snapshot
+        self._retired_by = None
+        self._closed = False
 
     def _create_new(self, attrs: dict, max_size: int | None, chunk_rows: int | None) -> None:
         if self.read_only:
@@ -514,27 +541,29 @@ class ZarrStorage(LazyTensorStorage):
     # -- writes ---------------------------------------------------------------
 
     def set(self, cursor, data, *, set_cursor: bool = True):
-        self._check_writable()
         try:
+            self._check_writable()
             data, n = self._prepare(cursor, data, set_cursor)
         except Exception:
-            if set_cursor:
+            if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
                 self._rollback_writers(cursor)
             raise
-        first_write = not self.initialized
-        if first_write:
-            self._init_schema(data if _is_int_cursor(cursor) else data[0])
-        rows = dirty = _cursor_rows(cursor, self.max_size)
-        if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
-            cursor = dirty = slice(int(rows[0]), int(rows[-1]) + 1)  # a view copy: ~2x an index_put
-        with self._cv:
-            super().set(cursor, data, set_cursor=set_cursor)
-            if set_cursor:
-                self._write_count += n
-                self._writer_cursor = (int(rows[-1]) + 1) % self.max_size
-            self._mark_dirty(dirty)
-            self._last_set_time = time.monotonic()
-        self._kick()
+        # A signal arriving from here on is handled once the write is complete
+        # (a flush must never see RAM rows that are not marked dirty yet).
+        with _lifecycle.critical():
+            if not self.initialized:
+                self._init_schema(data if _is_int_cursor(cursor) else data[0])
+            rows = dirty = _cursor_rows(cursor, self.max_size)
+            if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
+                cursor = dirty = slice(int(rows[0]), int(rows[-1]) + 1)  # a view copy: ~2x an index_put
+            with self._cv:
+                super().set(cursor, data, set_cursor=set_cursor)
+                if set_cursor:
+                    self._write_count += n
+                    self._writer_cursor = (int(rows[-1]) + 1) % self.max_size
+                self._mark_dirty(dirty)
+                self._last_set_time = time.monotonic()
+            self._kick()
 
     def _check_writable(self) -> None:
         if self.read_only:
@@ -542,13 +571,17 @@ class ZarrStorage(LazyTensorStorage):
                 f"This ZarrStorage ({self.path!r}) was opened read_only; open it without "
                 f"read_only=True to write."
             )
-        if self._closed:
-            raise RuntimeError(f"This ZarrStorage ({self.path!r}) is closed.")
-        if self._error is not None:
+        if self._retired_by is not None:
             raise RuntimeError(
-                f"The background writer of {self.path!r} failed; nothing after the last commit "
-                f"is durable."
-            ) from self._error
+                f"This ZarrStorage ({self.path!r}) handed its writer to {self._retired_by}; it "
+                f"is now a read-only snapshot. Write through the newer handle."
+            )
+        if self._closed:
+            raise RuntimeError(
+                f"This ZarrStorage ({self.path!r}) is closed; open ZarrStorage({self.path!r}) "
+                f"again to keep writing."
+            )
+        self._raise_writer_error()
 
     def _prepare(self, cursor, data, set_cursor: bool) -> tuple[TensorDictBase, int]:
         """Validates ``data`` against the schema and adds the tag columns (no side effects)."""
@@ -600,6 +633,15 @@ class ZarrStorage(LazyTensorStorage):
         if single:
             data = data[0]
         return data, n
+
+    def check_schema(self, data: TensorDictBase) -> None:
+        """Raises, naming the key, unless ``data`` (batch ``[N]``) could be written to this store.
+
+        Nothing is written. The tag columns (``episode``, ``run``, ``env``) are
+        ignored; a store with no rows yet accepts any supported dtypes.
+        """
+        data = data.exclude(*TAG_KEYS, *_DROPPED_KEYS)
+        self._validate(data)
 
     def _validate(self, data: TensorDictBase) -> None:
         """Raises, naming the key, unless ``data`` (without tags) matches the schema."""
@@ -713,6 +755,8 @@ class ZarrStorage(LazyTensorStorage):
         """Undoes the cursor move RoundRobinWriter made before calling a failing ``set``."""
         rows = _cursor_rows(cursor, self.max_size)
         n = len(rows)
+        if n == 0:  # an empty write did not move the cursor
+            return
         for ent in list(self._attached_entities):
             writer = getattr(ent, "_writer", None)
             if writer is None or getattr(writer, "_storage", None) is not self:
@@ -760,7 +804,7 @@ class ZarrStorage(LazyTensorStorage):
 
     def _empty(self) -> None:
         self._check_writable()
-        with self._cv:
+        with _lifecycle.critical(), self._cv:
             super()._empty()
             self._writer_cursor = 0
             self._write_count = 0  # as TorchRL's writer restarts its count
@@ -983,15 +1027,25 @@ class ZarrStorage(LazyTensorStorage):
         self._raise_writer_error()
 
     def _raise_writer_error(self) -> None:
-        if self._error is not None:
-            raise RuntimeError(f"The background writer of {self.path!r} failed.") from self._error
+        err = self._error
+        if err is not None:
+            raise RuntimeError(
+                f"The background writer of {self.path!r} failed: {type(err).__name__}: {err}. "
+                f"Rows written after the last commit ({self._committed_len} rows) are not durable; "
+                f"fix the cause (disk space, permissions) and reopen the store."
+            ) from err
 
     def close(self) -> None:
-        """Flushes, stops the writer and releases the store. Idempotent."""
+        """Flushes, stops the writer and releases the store. Idempotent.
+
+        Closing is optional: every writable store is also flushed when the
+        process exits (end of script, exception, Ctrl-C) or receives SIGTERM.
+        """
         if self._closed:
             return
         try:
-            self.flush()
+            with _lifecycle.critical():
+                self.flush()
         finally:
             self._release()
 
@@ -1089,15 +1143,6 @@ class ZarrStorage(LazyTensorStorage):
 
 
 # -- helpers ------------------------------------------------------------------
-
-
-def _close_at_exit(ref: weakref.ref) -> None:
-    storage = ref()
-    if storage is not None:
-        try:
-            storage.close()
-        except Exception:
-            pass
 
 
 def _library_version() -> str:

@@ -1,0 +1,164 @@
+"""Process-end safety for writable :class:`~torchrl_robotmem.ZarrStorage` handles.
+
+A persistent memory must keep every row a process extended, however the process
+ends, even if nobody calls ``close()``. This module owns the three mechanisms
+that make that true:
+
+* **Interpreter exit** (end of script, ``sys.exit``, an uncaught exception,
+  ``KeyboardInterrupt``, hydra's ``main`` returning, a buffer collected in a
+  reference cycle): every live writer is closed by a *threading* exit hook.
+  A plain :mod:`atexit` hook is too late: at interpreter exit Python first runs
+  ``concurrent.futures``' own threading hook, which stops every thread pool,
+  Zarr's included (its ``LocalStore`` writes through ``asyncio.to_thread``), and
+  a commit attempted afterwards fails with "cannot schedule new futures after
+  shutdown". Threading hooks run in reverse registration order, so ours, which
+  is registered after ``concurrent.futures.thread`` is imported, runs first.
+* **SIGTERM** (what SLURM, Kubernetes and ``kill`` send): a handler installed at
+  the first writable open flushes every writer and then does what the handler
+  it replaced would have done (by default: terminate with SIGTERM).
+* **Critical sections**: a signal that arrives while the main thread is inside a
+  storage write is handled when the write is complete, so a flush never sees a
+  half-applied write. ``SIGINT`` keeps raising ``KeyboardInterrupt``, only
+  deferred to the end of the write in progress.
+
+Set ``TORCHRL_ROBOTMEM_SIGNALS=0`` to leave the process's signal handlers alone
+(the exit hook is always installed).
+"""
+from __future__ import annotations
+
+import atexit
+import concurrent.futures.thread  # noqa: F401  (see the module docstring: hook order)
+import os
+import signal
+import sys
+import threading
+import weakref
+from typing import Any
+
+__all__ = ["register_writer", "critical", "flush_all_writers"]
+
+_WRITERS: weakref.WeakSet = weakref.WeakSet()
+_installed = False
+_lock = threading.Lock()
+_main_ident = threading.main_thread().ident
+_depth = 0  # main-thread nesting of critical sections
+_pending: list[tuple[int, Any]] = []  # signals that arrived inside a critical section
+_previous: dict[int, Any] = {}  # handlers we replaced
+
+
+def register_writer(storage: Any) -> None:
+    """Tracks a writable storage; installs the exit hook and signal handlers once."""
+    global _installed
+    _WRITERS.add(storage)
+    with _lock:
+        if _installed:
+            return
+        _installed = True
+    try:
+        threading._register_atexit(_close_all_at_exit)  # type: ignore[attr-defined]
+    except (AttributeError, RuntimeError):  # no such hook, or already shutting down
+        atexit.register(_close_all_at_exit)
+    if os.environ.get("TORCHRL_ROBOTMEM_SIGNALS", "1") != "0":
+        _install_signal_handlers()
+
+
+def flush_all_writers() -> list[tuple[str, BaseException]]:
+    """Flushes every live writable storage of this process; returns the failures."""
+    failures = []
+    for storage in list(_WRITERS):
+        try:
+            storage.flush()
+        except BaseException as err:  # noqa: BLE001 - reported, the others still flush
+            failures.append((str(getattr(storage, "path", storage)), err))
+    return failures
+
+
+def _close_all_at_exit() -> None:
+    for storage in list(_WRITERS):
+        try:
+            storage.close()
+        except BaseException as err:  # noqa: BLE001 - never hide a lost commit
+            _warn(f"could not flush {getattr(storage, 'path', storage)!r} at exit: "
+                  f"{type(err).__name__}: {err}")
+
+
+def _warn(msg: str) -> None:
+    try:
+        sys.stderr.write(f"torchrl_robotmem: {msg}\n")
+        sys.stderr.flush()
+    except Exception:  # noqa: BLE001 - stderr may be gone at exit
+        pass
+
+
+# -- signals --------------------------------------------------------------------
+
+
+def _install_signal_handlers() -> None:
+    if threading.get_ident() != _main_ident:
+        return  # signal handlers can only be set from the main thread
+    try:
+        prev = signal.getsignal(signal.SIGTERM)
+        if prev is not _on_signal:
+            _previous[signal.SIGTERM] = prev
+            signal.signal(signal.SIGTERM, _on_signal)
+        prev = signal.getsignal(signal.SIGINT)
+        if prev is signal.default_int_handler:  # only the default: a user's handler is theirs
+            _previous[signal.SIGINT] = prev
+            signal.signal(signal.SIGINT, _on_signal)
+    except (ValueError, OSError):  # e.g. an embedded interpreter
+        pass
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    if _depth > 0:  # the main thread is inside a storage write: finish it first
+        _pending.append((signum, frame))
+        return
+    _handle(signum, frame)
+
+
+def _handle(signum: int, frame: Any) -> None:
+    prev = _previous.get(signum, signal.SIG_DFL)
+    if signum == signal.SIGINT:
+        # Ctrl-C: the normal exit path (the exit hook) flushes; a caught
+        # KeyboardInterrupt keeps the process and its writers alive.
+        if callable(prev):
+            prev(signum, frame)
+        return
+    for path, err in flush_all_writers():
+        _warn(f"could not flush {path!r} on signal {signum}: {type(err).__name__}: {err}")
+    if callable(prev):
+        prev(signum, frame)
+    elif prev == signal.SIG_IGN:
+        return
+    else:  # SIG_DFL (or None: set outside Python): terminate as the signal would have
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
+
+class _Critical:
+    """``with critical():`` defers signal handling in the main thread to the block's end."""
+
+    __slots__ = ()
+
+    def __enter__(self) -> None:
+        global _depth
+        if threading.get_ident() == _main_ident:
+            _depth += 1
+
+    def __exit__(self, *exc) -> None:
+        global _depth
+        if threading.get_ident() != _main_ident:
+            return
+        _depth -= 1
+        if _depth == 0 and _pending:
+            pending = list(_pending)
+            _pending.clear()
+            for signum, frame in pending:
+                _handle(signum, frame)
+
+
+_CRITICAL = _Critical()
+
+
+def critical() -> _Critical:
+    return _CRITICAL
