@@ -98,9 +98,9 @@ def test_bad_input_leaves_memory_unchanged(tmp_path):
             mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {**ok, "colour": "red"})
         with pytest.raises(ValueError, match="dim"):
             mem.recall([0.0, 0.0], top_k=1)
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match="NaN or infinite"):
             mem.recall([np.nan, 0.0, 0.0], top_k=1)
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match="k must be"):
             mem.recall([0.0, 0.0, 0.0], top_k=0)
         assert len(mem) == 1 and mem.buffer.writer._cursor == 1
 

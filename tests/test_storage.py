@@ -427,8 +427,12 @@ def test_dumps_loads_and_checkpoint_do_not_copy_rows(tmp_path, transitions):
     rb2 = _rb(ZarrStorage(path))
     rb2.loads(tmp_path / "ckpt")
     assert len(rb2) == 300 and rb2.writer._cursor == 300
+    # a writer moved elsewhere is put back by Checkpoint.load (the store is the newest state)
+    rb2.writer._cursor, rb2.writer._write_count = 7, 7
     Checkpoint(replay_buffer=rb2).load(tmp_path / "ck2")
-    assert len(rb2) == 300
+    assert (rb2.writer._cursor, rb2.writer._write_count) == (300, 300)
+    rb2.extend(transitions(10, 300))  # appends after the old rows
+    assert len(rb2) == 310 and torch.equal(rb2.storage["observation"][300:310], transitions(10, 300)["observation"])
     rb2.storage.close()
     other = _rb(ZarrStorage(tmp_path / "other.zarr", 10))
     with pytest.raises(ValueError, match="points to the Zarr store"):

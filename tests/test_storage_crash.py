@@ -26,6 +26,7 @@ ahead of the metadata) and pin the bugs found by the random test.
 """
 from __future__ import annotations
 
+import asyncio
 import multiprocessing as mp
 import os
 import random
@@ -33,6 +34,7 @@ import runpy
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -403,18 +405,24 @@ def test_crash_mid_journaled_commit_read_only_open(tmp_path):
 
 
 def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):
-    orig = zarr.Array.__setitem__
+    """flush() called while the background writer is mid-commit returns only once it committed."""
+    from zarr.core.array import AsyncArray
 
-    def slow(self, key, value):  # a slow disk / object store
-        time.sleep(0.2)
-        orig(self, key, value)
+    orig = AsyncArray.setitem
+    started = threading.Event()
 
-    monkeypatch.setattr(zarr.Array, "__setitem__", slow)
+    async def slow(self, selection, value, prototype=None):  # a slow disk / object store
+        started.set()
+        await asyncio.sleep(0.3)
+        return await orig(self, selection, value, prototype)
+
+    monkeypatch.setattr(AsyncArray, "setitem", slow)
     path = tmp_path / "m.zarr"
     st = ZarrStorage(path, 1000, chunk_rows=64, commit_interval=0.05)
     rb = TensorDictReplayBuffer(storage=st, batch_size=4)
     rb.extend(make_rows(torch.arange(10)))
-    time.sleep(0.15)  # the timer commit has taken the dirty rows and is writing them
+    assert started.wait(30), "the timer commit never started"
+    assert not st._dirty and st._inflight == 1, "the commit is not in flight: the scenario is not exercised"
     st.flush()
     assert len(ZarrStorage(path, read_only=True)) == 10, "flush() returned before the rows were committed"
     st.close()
@@ -428,7 +436,15 @@ st = ZarrStorage(sys.argv[1], 128, chunk_rows=64, commit_interval=60)
 rb = TensorDictReplayBuffer(storage=st, batch_size=4)
 rb.extend(make_rows(torch.arange(128))); st.flush()   # committed: write_count 128
 rb.extend(make_rows(torch.arange(128, 328)))          # 1.5 more laps, not flushed
-time.sleep(3)                                         # the writer commits the complete chunks
+import json
+def committed():
+    with open(os.path.join(sys.argv[1], "zarr.json")) as f:
+        return json.load(f)["attributes"]["write_count"]
+deadline = time.monotonic() + 60                      # until the writer committed past the first lap
+while time.monotonic() < deadline and committed() <= 128:
+    time.sleep(0.05)
+print("committed", committed(), flush=True)
+rb.extend(make_rows(torch.arange(328, 360)))          # and more rows in RAM only
 os.kill(os.getpid(), signal.SIGKILL)
 '''
 
@@ -439,8 +455,11 @@ def test_ring_rows_never_lead_the_metadata(tmp_path):
     script.write_text(_LEAD_CHILD)
     out = subprocess.run([sys.executable, str(script), str(path)], capture_output=True, text=True, timeout=120)
     assert out.returncode == -signal.SIGKILL, out.stderr
+    committed = int(out.stdout.split()[-1])
+    assert 128 < committed <= 328, f"the child committed nothing past the first lap: {out.stdout}"
     with ZarrStorage(path) as st:
         W = st._write_count
+        assert committed <= W < 360
         w = -st[: len(st)]["action"][:, 0]
         # every slot holds the last write < write_count that maps to it
         expected = W - 1 - ((W - 1 - torch.arange(len(st))) % 128)
@@ -472,8 +491,11 @@ def test_commit_metadata_is_written_atomically(tmp_path):
     path = tmp_path / "m.zarr"
     script = tmp_path / "attrs_child.py"
     script.write_text(_ATTRS_CHILD)
-    subprocess.run([sys.executable, str(script), str(path)], capture_output=True, text=True, timeout=120)
+    out = subprocess.run([sys.executable, str(script), str(path)], capture_output=True, text=True, timeout=120)
+    # the child kills itself at the first half-written commit it sees; it saw none
+    assert out.returncode == 0, (out.returncode, out.stderr)
     with ZarrStorage(path) as st:
+        assert len(st) == 150
         assert (len(st), st._writer_cursor) == (st._write_count, st._write_count), (
             f"len {len(st)}, cursor {st._writer_cursor}, write_count {st._write_count}"
         )

@@ -345,6 +345,18 @@ def test_inside_collectors(memories, kind):
     assert data["prior_goals"].shape == (len(data), K, 3)
     assert data["next", "prior_actions"].shape == (len(data), K, 4)
     assert data["prior_goals_mask"].all()  # each worker opened the store and found rows
+    # what the workers recalled is what a search of the same memory here returns
+    memory = ZarrStorage(path, read_only=True)
+    _assert_matches_search(data["desired_goal"], data["prior_goals"], data["prior_goals_dist"],
+                           data["prior_goals_mask"], memory, "euclidean")
+    _, index, _ = GoalIndex(memory).search(data["desired_goal"], K)
+    recalled = memory[index.reshape(-1)]["action"].reshape(len(data), K, 4)
+    stored = memory[: len(memory)]
+    # the recalled actions belong to the recalled goals (ties share the goal, not the action)
+    got = torch.cat([data["next", "prior_goals"], data["next", "prior_actions"]], -1)
+    pairs = torch.cat([stored["next", "achieved_goal"], stored["action"]], -1)
+    assert (got.reshape(-1, 1, 7) == pairs).all(-1).any(-1).all()
+    assert recalled.shape == data["next", "prior_actions"].shape
 
 
 def test_pickling_needs_a_path(memories, tmp_path):

@@ -1,0 +1,284 @@
+"""A writable ZarrStorage loses nothing, however an ordinary process ends, without close().
+
+Every case runs a real child process that extends a buffer and never calls
+``close()``; the parent reopens the store and checks that every row whose
+``extend`` returned is there, bit-exact. Rows carry their write number, so a
+lost, reordered or torn row is caught.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchrl_robotmem import ZarrStorage
+
+BATCH = 100
+
+# The child: `extend_batches(rb, n)` writes n batches of BATCH rows whose
+# "obs" is the row's write number, and records the number of completed
+# extends in a memory-mapped counter after each one (read by the parent after
+# the child is gone).
+_PRELUDE = textwrap.dedent(
+    f"""
+    import os, signal, sys, time
+    import numpy as np, torch
+    from tensordict import TensorDict
+    from torchrl.data import ReplayBuffer, TensorDictReplayBuffer
+    from torchrl_robotmem import ZarrStorage
+    torch.set_num_threads(1)
+    PATH, COUNTER = sys.argv[1], sys.argv[2]
+    counter = np.memmap(COUNTER, dtype=np.int64, mode="r+", shape=(1,))
+    BATCH = {BATCH}
+
+    def batch(i):
+        obs = torch.arange(i * BATCH, (i + 1) * BATCH, dtype=torch.float64).unsqueeze(-1)
+        done = torch.zeros(BATCH, 1, dtype=torch.bool)
+        done[-1] = True
+        return TensorDict({{"obs": obs, ("next", "done"): done}}, [BATCH])
+
+    def extend_batches(rb, n, start=0):
+        for i in range(start, start + n):
+            rb.extend(batch(i))
+            counter[0] = i + 1
+
+    def ready():
+        print("ready", flush=True)
+    """
+)
+
+
+def _run_child(tmp_path: Path, body: str, *, signal_after_ready: int | None = None,
+               args: tuple[str, ...] = (), timeout: float = 120) -> tuple[subprocess.CompletedProcess, int, Path]:
+    path = tmp_path / "m.zarr"
+    counter_path = tmp_path / "counter.bin"
+    np.memmap(counter_path, dtype=np.int64, mode="w+", shape=(1,))[:] = 0
+    script = tmp_path / "child.py"
+    script.write_text(_PRELUDE + textwrap.dedent(body))
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cmd = [sys.executable, str(script), str(path), str(counter_path), *args]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            cwd=tmp_path)
+    if signal_after_ready is not None:
+        line = proc.stdout.readline()
+        assert line.strip() == "ready", f"child did not start: {line!r} {proc.stderr.read()}"
+        time.sleep(0.3)  # inside the tight extend loop by now
+        proc.send_signal(signal_after_ready)
+    out, err = proc.communicate(timeout=timeout)
+    completed = int(np.memmap(counter_path, dtype=np.int64, mode="r", shape=(1,))[0])
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err), completed, path
+
+
+def _check_rows(path: Path, completed: int, *, at_most_one_more: bool = False) -> int:
+    """Every row of every completed extend is in the store, bit-exact; returns len."""
+    s = ZarrStorage(path, read_only=True)
+    n = len(s)
+    assert n % BATCH == 0, f"a torn batch: {n} rows"
+    assert n >= completed * BATCH, f"lost rows: {n} in the store, {completed * BATCH} extended"
+    if at_most_one_more:  # an extend in flight when the process was stopped may have landed
+        assert n <= (completed + 1) * BATCH
+    else:
+        assert n == completed * BATCH
+    expected = torch.arange(n, dtype=torch.float64).unsqueeze(-1)
+    assert torch.equal(s["obs"][:n], expected)
+    return n
+
+
+def test_end_of_script(tmp_path):
+    res, completed, path = _run_child(tmp_path, """
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000), batch_size=4)
+        extend_batches(rb, 5)
+    """)
+    assert res.returncode == 0, res.stderr
+    assert completed == 5
+    _check_rows(path, completed)
+
+
+def test_sys_exit(tmp_path):
+    res, completed, path = _run_child(tmp_path, """
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000), batch_size=4)
+        extend_batches(rb, 3)
+        sys.exit(3)
+    """)
+    assert res.returncode == 3, res.stderr
+    _check_rows(path, completed)
+    assert completed == 3
+
+
+def test_return_from_the_function_that_owned_the_buffer(tmp_path):
+    # The buffer and its storage reference each other: only the cycle
+    # collector (or the exit hook) ends them.
+    res, completed, path = _run_child(tmp_path, """
+        def train():
+            rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000), batch_size=4)
+            extend_batches(rb, 4)
+        train()
+        import gc; gc.collect()
+        time.sleep(0.2)  # the script goes on with something else, then ends
+    """)
+    assert res.returncode == 0, res.stderr
+    assert completed == 4
+    _check_rows(path, completed)
+
+
+def test_uncaught_exception(tmp_path):
+    res, completed, path = _run_child(tmp_path, """
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000), batch_size=4)
+        extend_batches(rb, 4)
+        raise RuntimeError("training diverged")
+    """)
+    assert res.returncode == 1 and "training diverged" in res.stderr
+    assert "could not flush" not in res.stderr
+    _check_rows(path, completed)
+    assert completed == 4
+
+
+def test_prefetching_buffer_and_ring_wrap(tmp_path):
+    """prefetch=3 samples from threads (as TorchRL's sota SAC does); the ring wraps (journal path)."""
+    res, completed, path = _run_child(tmp_path, """
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 1_000, chunk_rows=256), batch_size=32, prefetch=3)
+        extend_batches(rb, 3)
+        for _ in range(5):
+            rb.sample()
+        extend_batches(rb, 10, start=3)   # wraps around 1000 slots
+        rb.sample()
+    """)
+    assert res.returncode == 0, res.stderr
+    assert completed == 13
+    s = ZarrStorage(path, read_only=True)
+    assert len(s) == 1_000
+    # the ring holds write numbers 300..1299 at slot (write number % 1000)
+    expected = torch.arange(300, 1300, dtype=torch.float64)
+    slots = expected.long() % 1000
+    assert torch.equal(s["obs"][slots].squeeze(-1), expected)
+
+
+def test_hydra_main_returning(tmp_path):
+    res, completed, path = _run_child(tmp_path, """
+        import hydra
+        from omegaconf import DictConfig
+
+        @hydra.main(version_base="1.3", config_path=None, config_name=None)
+        def main(cfg: DictConfig) -> None:
+            rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000), batch_size=4)
+            extend_batches(rb, 2)
+
+        sys.argv = sys.argv[:1] + ["hydra.run.dir=" + os.getcwd() + "/outputs"]
+        main()
+    """)
+    assert res.returncode == 0, res.stderr
+    assert completed == 2
+    _check_rows(path, completed)
+
+
+def test_sigterm_in_a_tight_extend_loop(tmp_path):
+    """What SLURM / Kubernetes send before preemption: flush, then die by SIGTERM as before."""
+    res, completed, path = _run_child(tmp_path, """
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000_000), batch_size=4)
+        extend_batches(rb, 2)
+        ready()
+        extend_batches(rb, 10**9, start=2)
+    """, signal_after_ready=signal.SIGTERM)
+    assert res.returncode == -signal.SIGTERM, res.stderr  # the default action still happens
+    assert completed > 2
+    _check_rows(path, completed, at_most_one_more=True)
+
+
+def test_sigterm_chains_to_the_previous_handler(tmp_path):
+    """A handler installed before the store opened still runs (and may keep the process alive)."""
+    res, completed, path = _run_child(tmp_path, """
+        stop = []
+        signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000_000), batch_size=4)
+        extend_batches(rb, 2)
+        ready()
+        i = 2
+        while not stop:
+            extend_batches(rb, 1, start=i)
+            i += 1
+        # the handler ran, and the store was already flushed when it did
+        print("stopped", len(ZarrStorage(PATH, read_only=True)) >= 2 * BATCH, flush=True)
+        extend_batches(rb, 1, start=i)    # still writable afterwards
+    """, signal_after_ready=signal.SIGTERM)
+    assert res.returncode == 0, res.stderr
+    assert "stopped True" in res.stdout
+    _check_rows(path, completed)
+
+
+def test_ctrl_c_in_a_tight_extend_loop(tmp_path):
+    res, completed, path = _run_child(tmp_path, """
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000_000), batch_size=4)
+        extend_batches(rb, 2)
+        ready()
+        extend_batches(rb, 10**9, start=2)
+    """, signal_after_ready=signal.SIGINT)
+    # Python ends an uncaught KeyboardInterrupt by re-raising SIGINT after its normal exit path
+    assert res.returncode == -signal.SIGINT and "KeyboardInterrupt" in res.stderr, res.stderr
+    assert completed > 2
+    # an interrupt is handled between writes: the extend in flight either
+    # landed whole or not at all
+    _check_rows(path, completed, at_most_one_more=True)
+
+
+def test_second_writer_process_is_refused_and_a_reader_process_follows(tmp_path):
+    """Two processes never write one store; a read_only process sees only committed rows."""
+    path = tmp_path / "m.zarr"
+    counter_path = tmp_path / "counter.bin"
+    np.memmap(counter_path, dtype=np.int64, mode="w+", shape=(1,))[:] = 0
+    script = tmp_path / "writer.py"
+    script.write_text(_PRELUDE + textwrap.dedent("""
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000_000, commit_interval=0.05), batch_size=4)
+        extend_batches(rb, 2)
+        rb.storage.flush()
+        ready()
+        extend_batches(rb, 10**9, start=2)
+    """))
+    proc = subprocess.Popen([sys.executable, str(script), str(path), str(counter_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready", proc.stderr.read()
+        with pytest.raises(RuntimeError, match="Another process .* is writing"):
+            ZarrStorage(path)
+        reader = ZarrStorage(path, read_only=True)
+        seen = [len(reader)]
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and len(seen) < 4:
+            time.sleep(0.1)
+            n = reader.refresh()
+            if n > seen[-1]:
+                seen.append(n)
+        assert len(seen) >= 4, f"the reader saw no new commits: {seen}"
+        for n in seen:
+            assert n % BATCH == 0
+        n = len(reader)
+        assert torch.equal(reader["obs"][:n], torch.arange(n, dtype=torch.float64).unsqueeze(-1))
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGTERM
+    completed = int(np.memmap(counter_path, dtype=np.int64, mode="r", shape=(1,))[0])
+    _check_rows(path, completed, at_most_one_more=True)
+    ZarrStorage(path).close()  # the writer's lock died with it
+
+
+def test_exit_hook_reports_a_commit_it_cannot_make(tmp_path):
+    """The exit path does not swallow errors: a store made unwritable is reported on stderr."""
+    res, completed, path = _run_child(tmp_path, """
+        import shutil
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000), batch_size=4)
+        extend_batches(rb, 1)
+        rb.storage.flush()
+        extend_batches(rb, 1, start=1)
+        shutil.rmtree(PATH)                 # the store vanishes under the writer
+        open(PATH, "w").write("not a dir")  # and a file stands in its way
+    """)
+    assert res.returncode == 0, res.stderr
+    assert "torchrl_robotmem: could not flush" in res.stderr and "m.zarr" in res.stderr
