@@ -1,0 +1,231 @@
+"""SAC / TD3 / DDPG + HER on Fetch and Shadow Hand, over a persistent memory.
+
+The loop of TorchRL's ``sota-implementations/sac/sac.py`` (collect, extend,
+update, log, evaluate), with three changes:
+
+* the replay buffer is a :class:`~torchrl.data.HERReplayBuffer` over a
+  :class:`~torchrl_robotmem.ZarrStorage` at ``memory.path``: transitions outlive
+  the run, and the next run with the same path continues on them;
+* a run that starts fresh networks on a non-empty memory first does
+  ``memory.pretrain_updates`` updates on it, before collecting anything;
+* optionally, :class:`~torchrl_robotmem.GoalSimilaritySampler` draws rows near
+  the goals being chased now, and :class:`~torchrl_robotmem.RecallTransform`
+  shows actor and critic the remembered goals nearest to their goal.
+
+    python recipes/her/train.py                        # SAC, FetchReach-v4
+    python recipes/her/train.py algo=td3 env=push seed=1
+    python recipes/her/train.py replay_buffer.storage._target_=torchrl.data.LazyTensorStorage
+"""
+from __future__ import annotations
+
+import json
+import time
+
+import hydra
+import numpy as np
+import torch
+import tqdm
+from hydra.utils import to_absolute_path
+from tensordict import TensorDict
+from torchrl.checkpoint import Checkpoint
+from torchrl.record.loggers import generate_exp_name, get_logger
+from utils import (
+    RECALL_KEYS,
+    CpuClock,
+    GoalNormalizer,
+    current_goals,
+    evaluate,
+    loss_keys,
+    make_agent,
+    make_collector,
+    make_environment,
+    make_loss_module,
+    make_optimizer,
+    make_replay_buffer,
+    make_sampler,
+    make_storage,
+    plot_success,
+    refresh_recall,
+)
+
+
+@hydra.main(version_base="1.3", config_path="", config_name="config")
+def main(cfg: DictConfig):  # noqa: F821
+    # One thread: on a busy 2-core machine two threads made SAC updates 6-10x slower.
+    torch.set_num_threads(1)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    algo = cfg.algo.name
+    # hydra has already moved into outputs/<date>/<time>: resolve against the launch dir
+    memory_path = to_absolute_path(cfg.memory.path)
+    checkpoint_path = to_absolute_path(cfg.memory.checkpoint)
+
+    # Create logger
+    logger = None
+    if cfg.logger.backend:
+        logger = get_logger(
+            cfg.logger.backend,
+            logger_name="her_logging",
+            experiment_name=generate_exp_name(algo, cfg.logger.exp_name),
+            wandb_kwargs={"mode": cfg.logger.mode, "project": cfg.logger.project_name},
+        )
+
+    # Create the memory: storage, optional goal sampler, HER on top
+    replay_buffer = make_replay_buffer(cfg, make_storage(cfg, memory_path), make_sampler(cfg))
+    goal_sampler = replay_buffer.sampler if cfg.replay_buffer.sampler.enabled else None
+    remembered = len(replay_buffer)
+
+    # Create environments (the recall transform reads the same memory, live)
+    train_env, eval_env = make_environment(cfg, memory=replay_buffer.storage)
+    recall = train_env.transform[-1] if cfg.memory.recall.enabled else None
+
+    # Create agent, loss, optimiser
+    normalizer = GoalNormalizer()
+    model, exploration_policy = make_agent(cfg, train_env, normalizer)
+    loss_module, target_net_updater = make_loss_module(cfg, model)
+    optimizer = make_optimizer(cfg, loss_module)
+    checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
+    resumed = bool(cfg.memory.resume_agent) and Checkpoint.is_checkpoint(checkpoint_path)
+    if resumed:
+        checkpoint.load(checkpoint_path)
+    elif remembered:
+        normalizer.update(replay_buffer[:])  # fresh networks: statistics of the whole memory
+    keys = loss_keys(cfg)
+    num_updates = 0
+
+    def update(batch):
+        nonlocal num_updates
+        if recall is not None:
+            refresh_recall(batch, recall)
+        loss_td = loss_module(batch)
+        used = keys
+        if algo == "TD3" and num_updates % cfg.algo.policy_update_delay:
+            used = ("loss_qvalue",)  # delayed actor and target updates
+        sum(loss_td[k] for k in used).backward()
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        if used is keys:
+            target_net_updater.step()
+        num_updates += 1
+        return loss_td.select(*keys).detach()
+
+    print(
+        f"{algo}+HER on {cfg.env.name} | memory {memory_path}: {remembered} transitions"
+        + (" | agent resumed from checkpoint" if resumed else "")
+    )
+    cpu = CpuClock()
+    curve: list[tuple[int, float]] = []
+
+    def log_eval(frames: int) -> float:
+        with cpu.paused():
+            metrics = evaluate(cfg, eval_env, model[0])
+        metrics["time/cpu_s"] = cpu.seconds()
+        metrics["train/updates"] = num_updates
+        curve.append((frames, metrics["eval/success_rate"]))
+        if logger is not None:
+            logger.log_metrics(metrics, frames)
+        return metrics["eval/success_rate"]
+
+    # Fresh networks on a memory that already holds transitions: learn from it first
+    if remembered and not resumed and cfg.memory.pretrain_updates:
+        for _ in tqdm.trange(cfg.memory.pretrain_updates, desc="updates on the memory", leave=False):
+            update(replay_buffer.sample())
+    success = log_eval(0)
+
+    # Main loop
+    collector = make_collector(
+        cfg, train_env, exploration_policy,
+        init_random_frames=max(0, cfg.collector.init_random_frames - remembered),
+    )
+    init_random_frames = collector.init_random_frames
+    utd_ratio = cfg.optim.utd_ratio
+    eval_iter = cfg.logger.eval_iter
+    target = cfg.logger.target_success
+    collected_frames = 0
+    reached_at = 0 if target is not None and success >= target else None
+    pbar = tqdm.tqdm(total=cfg.collector.total_frames, desc=f"{algo} {cfg.env.name}", leave=False)
+
+    for data in (collector if reached_at is None else ()):
+        # Extend: flat transitions; recalled priors are recomputed at sampling
+        data = data.reshape(-1).exclude(*RECALL_KEYS, *[("next", k) for k in RECALL_KEYS])
+        replay_buffer.extend(data)
+        normalizer.update(data)
+        frames = data.numel()
+        collected_frames += frames
+        pbar.update(frames)
+
+        # Update
+        metrics = {}
+        if collected_frames >= init_random_frames:
+            n = max(1, int(frames * utd_ratio))
+            losses = TensorDict(batch_size=[n])
+            query = current_goals(collector, data) if goal_sampler is not None else None
+            for i in range(n):
+                if query is not None:
+                    with goal_sampler.query(query):
+                        batch = replay_buffer.sample()
+                else:
+                    batch = replay_buffer.sample()
+                losses[i] = update(batch)
+            metrics.update({f"train/{k}": v.item() for k, v in losses.mean().items()})
+            if algo == "SAC":
+                metrics["train/alpha"] = loss_module.log_alpha.exp().item()
+        collector.update_policy_weights_()
+
+        # Log
+        done = data["next", "done"].squeeze(-1)
+        if done.any():
+            metrics["train/return"] = data["next", "episode_reward"][done].mean().item()
+            metrics["train/success_rate"] = data["next", "is_success"][done].float().mean().item()
+        if logger is not None and metrics:
+            logger.log_metrics(metrics, collected_frames)
+
+        # Evaluate
+        if collected_frames % eval_iter < frames:
+            success = log_eval(collected_frames)
+            pbar.set_postfix(success=f"{success:.2f}")
+            if target is not None and success >= target:
+                reached_at = collected_frames
+                break
+
+    pbar.close()
+    collector.shutdown()
+    if curve[-1][0] != collected_frames:
+        log_eval(collected_frames)
+
+    # Save the agent next to its memory; persist the memory
+    checkpoint.save(checkpoint_path, metadata={"env": cfg.env.name, "algo": algo, "updates": num_updates})
+    storage = replay_buffer.storage
+    if hasattr(storage, "flush"):
+        storage.flush()
+    summary = {
+        "env": cfg.env.name,
+        "algo": algo,
+        "seed": cfg.seed,
+        "memory_rows_before": remembered,
+        "memory_rows_after": len(replay_buffer),
+        "frames": collected_frames,
+        "frames_to_target": reached_at,
+        "cpu_s": round(cpu.seconds(), 2),
+        "updates": num_updates,
+        "curve": curve,
+    }
+    with open("summary.json", "w") as f:
+        json.dump(summary, f)
+    if cfg.logger.plot:
+        plot_success({f"{algo}+HER seed {cfg.seed}": curve}, "success_rate.png", title=cfg.env.name)
+    print(
+        f"evaluated success {curve[-1][1]:.2f} after {collected_frames} new env frames "
+        f"({summary['cpu_s']:.1f} CPU-s, {num_updates} updates); memory now {len(replay_buffer)} transitions"
+        + (f"; reached {target} at {reached_at} frames" if reached_at is not None else "")
+    )
+    if hasattr(storage, "close"):
+        storage.close()
+    if not eval_env.is_closed:
+        eval_env.close()
+    if not train_env.is_closed:
+        train_env.close()
+
+
+if __name__ == "__main__":
+    main()
