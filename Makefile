@@ -16,8 +16,13 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -e '.[dev]' --config-settings editable_mode=compat
 	touch $(STAMP)
 
+# SAC+HER on FetchReach with a short budget, over a persistent memory. Run it
+# again: fresh networks learn from the stored memory first, and it prints how
+# many fewer frames they needed.
+DEMO_ARGS ?= memory.path=memory/demo/FetchReach-v4.zarr logger.target_success=0.95 \
+	collector.total_frames=3000 hydra.run.dir=outputs/demo
 demo: install
-	$(PY) examples/demo.py
+	$(PY) recipes/her/train.py $(DEMO_ARGS)
 
 test: install
 	$(PY) -m pytest -q
@@ -27,6 +32,7 @@ bench: install
 	$(PY) benchmarks/bench_recall.py
 	$(PY) benchmarks/bench_sampler.py
 	$(PY) benchmarks/bench_collector.py
+	$(PY) benchmarks/bench_learning.py all
 
 clean:
 	rm -rf memory outputs .pytest_cache

@@ -19,7 +19,7 @@ update, log, evaluate), with three changes:
 from __future__ import annotations
 
 import json
-import time
+import os
 
 import hydra
 import numpy as np
@@ -32,6 +32,8 @@ from torchrl.record.loggers import generate_exp_name, get_logger
 from utils import (
     RECALL_KEYS,
     CpuClock,
+    append_history,
+    read_history,
     GoalNormalizer,
     current_goals,
     evaluate,
@@ -59,6 +61,8 @@ def main(cfg: DictConfig):  # noqa: F821
     # hydra has already moved into outputs/<date>/<time>: resolve against the launch dir
     memory_path = to_absolute_path(cfg.memory.path)
     checkpoint_path = to_absolute_path(cfg.memory.checkpoint)
+    history_path = to_absolute_path(cfg.memory.history)
+    history = read_history(history_path)
 
     # Create logger
     logger = None
@@ -141,6 +145,7 @@ def main(cfg: DictConfig):  # noqa: F821
     utd_ratio = cfg.optim.utd_ratio
     eval_iter = cfg.logger.eval_iter
     target = cfg.logger.target_success
+    budget = cfg.collector.cpu_budget_s
     collected_frames = 0
     reached_at = 0 if target is not None and success >= target else None
     pbar = tqdm.tqdm(total=cfg.collector.total_frames, desc=f"{algo} {cfg.env.name}", leave=False)
@@ -187,6 +192,8 @@ def main(cfg: DictConfig):  # noqa: F821
             if target is not None and success >= target:
                 reached_at = collected_frames
                 break
+        if budget is not None and cpu.seconds() >= budget:
+            break
 
     pbar.close()
     collector.shutdown()
@@ -212,13 +219,26 @@ def main(cfg: DictConfig):  # noqa: F821
     }
     with open("summary.json", "w") as f:
         json.dump(summary, f)
-    if cfg.logger.plot:
-        plot_success({f"{algo}+HER seed {cfg.seed}": curve}, "success_rate.png", title=cfg.env.name)
+    append_history(history_path, summary)
+    if cfg.logger.plot:  # this run, and the earlier runs on the same memory
+        curves = {
+            f"run {i + 1}: {run['algo']}, memory of {run['memory_rows_before']} transitions": run["curve"]
+            for i, run in enumerate([*history, summary])
+        }
+        if plot_success(curves, "success_rate.png", title=f"{cfg.env.name}, eval success"):
+            print(f"plot: {os.path.abspath('success_rate.png')}")
     print(
         f"evaluated success {curve[-1][1]:.2f} after {collected_frames} new env frames "
         f"({summary['cpu_s']:.1f} CPU-s, {num_updates} updates); memory now {len(replay_buffer)} transitions"
         + (f"; reached {target} at {reached_at} frames" if reached_at is not None else "")
     )
+    earlier = [run for run in history if run.get("frames_to_target") is not None]
+    if reached_at is not None and earlier:
+        first = earlier[0]["frames_to_target"]
+        print(
+            f"the first run on this memory needed {first} frames to reach {target}; "
+            f"this one {reached_at}: {first - reached_at} fewer"
+        )
     if hasattr(storage, "close"):
         storage.close()
     if not eval_env.is_closed:

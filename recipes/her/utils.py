@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import inspect
+import json
 import time
 import warnings
 
@@ -422,6 +423,20 @@ class CpuClock:
 
     def seconds(self) -> float:
         return time.process_time() - self._start - self._excluded
+
+
+def read_history(path: str) -> list[dict]:
+    """Summaries of the earlier runs on a memory (one JSON object a line)."""
+    try:
+        with open(path) as f:
+            return [json.loads(line) for line in f if line.strip()]
+    except FileNotFoundError:
+        return []
+
+
+def append_history(path: str, summary: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(summary) + "\n")
 
 
 def plot_success(curves: dict[str, list[tuple[int, float]]], path: str, title: str = "") -> bool:

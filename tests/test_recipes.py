@@ -1,0 +1,119 @@
+"""Smoke tests of recipes/her, as TorchRL's CI runs its sota scripts: real envs, real
+stores, each run a subprocess with a budget of a few dozen frames."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE_DIR = ROOT / "recipes" / "her"
+ENV_GROUPS = {
+    "reach": "FetchReach-v4",
+    "push": "FetchPush-v4",
+    "slide": "FetchSlide-v4",
+    "pick_and_place": "FetchPickAndPlace-v4",
+    "hand_reach": "HandReach-v3",
+    "block": "HandManipulateBlock-v1",
+    "egg": "HandManipulateEgg-v1",
+    "pen": "HandManipulatePen-v1",
+}
+TINY = [
+    "collector.total_frames=50",
+    "collector.init_random_frames=25",
+    "collector.frames_per_batch=25",
+    "optim.batch_size=8",
+    "network.hidden_sizes=[16,16]",
+    "memory.pretrain_updates=3",
+    "logger.eval_iter=50",
+    "logger.eval_episodes=1",
+    "logger.plot=false",
+]
+
+
+def run_recipe(tmp_path: Path, *overrides: str, out: str = "out") -> dict:
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, *overrides, f"hydra.run.dir={tmp_path / out}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    summary = json.loads((tmp_path / out / "summary.json").read_text())
+    summary["stdout"] = proc.stdout
+    return summary
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
+def test_fetch_reach_runs(tmp_path, algo):
+    s = run_recipe(tmp_path, f"algo={algo}", f"memory.path={tmp_path / 'mem.zarr'}")
+    assert s["algo"] == algo.upper() and s["frames"] == 50 and s["memory_rows_after"] == 50
+    assert s["updates"] > 0
+    assert [f for f, _ in s["curve"]] == [0, 50]
+    assert (tmp_path / "mem.zarr-agent").is_dir()  # torchrl.checkpoint of the agent
+    scalars = next((tmp_path / "out" / "her_logging").glob("*/scalars"))
+    assert (scalars / "eval" / "success_rate.csv").read_text().splitlines()[-1].startswith("50,")
+
+
+def test_shadow_hand_runs(tmp_path):
+    s = run_recipe(tmp_path, "env=hand_reach", f"memory.path={tmp_path / 'hand.zarr'}")
+    assert s["env"] == "HandReach-v3" and s["memory_rows_after"] == 50
+
+
+def test_resume_appends_to_the_memory(tmp_path):
+    from torchrl_robotmem import ZarrStorage
+
+    mem = tmp_path / "mem.zarr"
+    first = run_recipe(tmp_path, f"memory.path={mem}", out="run1")
+    with ZarrStorage(mem, read_only=True) as store:
+        before = store[:50]["next", "achieved_goal"].clone()
+    # second run: launched from another directory (hydra chdir), relative path, fresh networks
+    second = run_recipe(
+        tmp_path, "memory.path=mem.zarr", "collector.total_frames=25", out="run2"
+    )
+    assert first["memory_rows_before"] == 0
+    assert second["memory_rows_before"] == 50 and second["memory_rows_after"] == 75
+    assert "memory " in second["stdout"] and ": 50 transitions" in second["stdout"]
+    assert second["updates"] >= 3  # pretraining on the remembered rows, no random frames left to do
+    with ZarrStorage(mem, read_only=True) as store:
+        assert len(store) == 75
+        assert torch.equal(store[:50]["next", "achieved_goal"], before)  # appended after, not over
+        runs = store[:75]["run"]
+        assert runs[:50].unique().numel() == 1 and (runs[50:] > runs[0]).all()
+    third = run_recipe(tmp_path, "memory.path=mem.zarr", "memory.resume_agent=true",
+                       "collector.total_frames=25", out="run3")
+    assert "agent resumed from checkpoint" in third["stdout"]
+    assert third["memory_rows_before"] == 75
+
+
+def test_lazy_tensor_storage_through_the_config(tmp_path):
+    s = run_recipe(
+        tmp_path, "replay_buffer.storage._target_=torchrl.data.LazyTensorStorage",
+        f"memory.path={tmp_path / 'never.zarr'}",
+    )
+    assert s["memory_rows_after"] == 50
+    assert not (tmp_path / "never.zarr").exists()
+
+
+def test_goal_sampler_and_recall_switches(tmp_path):
+    s = run_recipe(
+        tmp_path, "replay_buffer.sampler.enabled=true", "memory.recall.enabled=true",
+        f"memory.path={tmp_path / 'mem.zarr'}",
+    )
+    assert s["updates"] > 0 and s["memory_rows_after"] == 50
+
+
+@pytest.mark.parametrize("group", sorted(ENV_GROUPS))
+def test_every_env_group_composes(group):
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_robotmem.envs import env_family
+
+    with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=[f"env={group}"])
+    assert cfg.env.name == ENV_GROUPS[group]
+    env_family(cfg.env.name)  # a supported id
+    assert cfg.collector.frames_per_batch % cfg.env.max_episode_steps == 0
+    assert cfg.replay_buffer.storage._target_ == "torchrl_robotmem.ZarrStorage"
