@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
-from . import _zarr
+from .storage import _backend as _zarr
 from .goal_index import GoalIndex
 from .storage import TAG_KEYS, ZarrStorage
 

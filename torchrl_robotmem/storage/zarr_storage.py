@@ -31,8 +31,9 @@ from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
 from zarr.core.sync import sync as zarr_sync
 
-from . import _lifecycle, _zarr
-from ._zarr import FORMAT_MARKER, FORMAT_VERSION
+from . import _backend as _zarr
+from . import lifecycle as _lifecycle
+from ._backend import FORMAT_MARKER, FORMAT_VERSION
 
 __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
 
@@ -1146,7 +1147,7 @@ class ZarrStorage(LazyTensorStorage):
 
 
 def _library_version() -> str:
-    from . import __version__
+    from .. import __version__
 
     return __version__
 

@@ -1,7 +1,9 @@
-"""Zarr plumbing for :class:`~torchrl_robotmem.ZarrStorage`.
+"""The store handle: paths and URLs, the writer lock, codecs, dtypes and key paths.
 
-Opening stores from paths or URLs, the inter-process writer lock, key <-> array
-path mapping, codecs and the JSON schema. Nothing here knows about TorchRL.
+The one place that turns what a user passes (a directory, ``file://``, an fsspec
+URL, a ``*.zip``, a Zarr ``Store``) into a Zarr store, and the one place that
+knows how TensorDict keys and torch dtypes map to Zarr arrays. Nothing here
+knows about TorchRL.
 """
 from __future__ import annotations
 
@@ -101,15 +103,45 @@ def is_url(path: str) -> bool:
     return "://" in path
 
 
+def normalize_path(path: str | os.PathLike | Any) -> str | Any:
+    """The canonical name of a store: an absolute local path, a URL, or the Store itself.
+
+    ``file://`` URLs become local paths. Two handles on the same store get the
+    same name (it keys the in-process writer registry and checkpoint pointers).
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        return path
+    spath = os.fspath(path)
+    if spath.startswith("file://"):
+        spath = spath[len("file://") :]
+    if is_url(spath):
+        return spath
+    return str(Path(spath).expanduser().absolute())
+
+
+def store_exists(path: str | os.PathLike | Any) -> bool:
+    """Whether ``path`` holds a Zarr group (without creating anything)."""
+    name = normalize_path(path)
+    if not isinstance(name, str) or is_url(name):
+        try:
+            open_group(open_store(name, read_only=True, storage_options=None)[0], read_only=True)
+            return True
+        except Exception:  # noqa: BLE001 - any failure means "no store here"
+            return False
+    if name.endswith(".zip"):
+        return os.path.exists(name)
+    return os.path.exists(os.path.join(name, "zarr.json"))
+
+
 def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_options: dict | None):
     """Returns ``(store_or_path, local_dir)``.
 
     ``local_dir`` is the directory of a local store (used for the writer lock),
     else ``None``.
     """
-    if not isinstance(path, (str, os.PathLike)):
-        return path, None  # a zarr Store instance
-    spath = os.fspath(path)
+    spath = normalize_path(path)
+    if not isinstance(spath, str):
+        return spath, None  # a zarr Store instance
     if spath.endswith(".zip") and not is_url(spath):
         from zarr.storage import ZipStore
 
@@ -117,18 +149,10 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
             raise FileNotFoundError(f"No Zarr zip store at {spath!r}.")
         return ZipStore(spath, mode="r" if read_only else "a"), None
     if is_url(spath):
-        if spath.startswith("file://"):
-            spath = spath[len("file://") :]
-        else:
-            from zarr.storage import FsspecStore
+        from zarr.storage import FsspecStore
 
-            return (
-                FsspecStore.from_url(
-                    spath, storage_options=storage_options, read_only=read_only
-                ),
-                None,
-            )
-    p = Path(spath).expanduser().absolute()
+        return FsspecStore.from_url(spath, storage_options=storage_options, read_only=read_only), None
+    p = Path(spath)
     if p.exists() and not p.is_dir():
         raise ValueError(
             f"{spath!r} is a file, not a Zarr store. Pass a directory path, a "

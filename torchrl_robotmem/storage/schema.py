@@ -1,0 +1,253 @@
+"""The row schema: what a store holds, how writes are checked, and the packed RAM mirror.
+
+* **Schema**: ``{array path: {"dtype", "shape"}}`` for every stored leaf
+  (``("next", "observation")`` -> ``"next/observation"``), recorded in the
+  store's attributes as JSON. Keys may be added after the first write (schema
+  evolution: older rows read zeros); a dtype or per-row shape change is an
+  error naming the key.
+* **Data kinds**: TorchRL storages take TensorDicts, plain tensors, pytrees
+  (dicts / tuples / lists of tensors) and tensorclasses. :class:`DataKind`
+  turns each into a TensorDict for storage and back, recording what it needs
+  as JSON (a pytree's ``treespec_dumps``; a tensorclass's qualified name). Nothing
+  stored is ever imported or unpickled: a tensorclass comes back as its class
+  only if that class is already imported in the reading process, else as a
+  TensorDict.
+* **Packed mirror**: every row's leaves live side by side in one
+  ``uint8`` buffer ``[*batch, row_bytes]``; the storage's ``_storage``
+  TensorDict holds strided views of it (what samplers and TorchRL read), and a
+  sample is ONE gather of whole rows instead of one per key.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from typing import Any
+
+import torch
+from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase, is_tensor_collection
+from tensordict.utils import NestedKey
+from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, treespec_loads
+
+from . import _backend
+
+__all__ = ["DataKind", "PackedLayout", "check_against", "spec_of"]
+
+
+# -- data kinds ------------------------------------------------------------------------
+
+
+class DataKind:
+    """How user data maps to a TensorDict and back.
+
+    ``kind`` is ``"tensordict"``, ``"tensor"``, ``"pytree"`` or ``"tensorclass"``;
+    ``meta`` is the JSON the reverse mapping needs.
+    """
+
+    TENSOR_KEY = "_tensor"
+    PYTREE_KEY = "_pytree"
+
+    def __init__(self, kind: str = "tensordict", meta: dict | None = None, cls: type | None = None) -> None:
+        self.kind = kind
+        self.meta = dict(meta or {})
+        self._cls = cls
+        self._spec = treespec_loads(self.meta["treespec"]) if kind == "pytree" else None
+
+    @classmethod
+    def of(cls, data: Any) -> DataKind:
+        if isinstance(data, torch.Tensor):
+            return cls("tensor")
+        if is_tensor_collection(data):
+            if isinstance(data, TensorDictBase):
+                return cls("tensordict")
+            klass = type(data)
+            return cls("tensorclass", {"class": f"{klass.__module__}.{klass.__qualname__}"}, klass)
+        leaves, spec = tree_flatten(data)
+        if not leaves or not all(isinstance(x, torch.Tensor) for x in leaves):
+            raise TypeError(
+                f"ZarrStorage stores TensorDicts, tensors, tensorclasses and pytrees of tensors; got "
+                f"{type(data).__name__} with leaves {sorted({type(x).__name__ for x in leaves})}."
+            )
+        return cls("pytree", {"treespec": treespec_dumps(spec)})
+
+    def to_json(self) -> dict:
+        return {"kind": self.kind, **self.meta}
+
+    @classmethod
+    def from_json(cls, value: dict | None) -> DataKind:
+        if not value:
+            return cls()
+        value = dict(value)
+        return cls(value.pop("kind"), value)
+
+    def same_as(self, other: DataKind) -> bool:
+        return self.kind == other.kind and self.meta == other.meta
+
+    def to_tensordict(self, data: Any, batch_dims: int) -> TensorDictBase:
+        if self.kind == "tensordict":
+            return data
+        if self.kind == "tensor":
+            return TensorDict({self.TENSOR_KEY: data}, batch_size=data.shape[:batch_dims])
+        if self.kind == "tensorclass":
+            return data._tensordict if hasattr(data, "_tensordict") else data.to_tensordict()
+        leaves, spec = tree_flatten(data)
+        if treespec_dumps(spec) != self.meta["treespec"]:
+            raise ValueError(
+                "This pytree's structure differs from the one the store holds "
+                f"({spec} vs {self._spec}); every write must have the same structure."
+            )
+        return TensorDict(
+            {self.PYTREE_KEY: {str(i): x for i, x in enumerate(leaves)}}, batch_size=leaves[0].shape[:batch_dims]
+        )
+
+    def from_tensordict(self, td: TensorDictBase) -> Any:
+        if self.kind == "tensordict":
+            return td
+        if self.kind == "tensor":
+            return td.get(self.TENSOR_KEY)
+        if self.kind == "pytree":
+            sub = td.get(self.PYTREE_KEY)
+            return tree_unflatten([sub.get(str(i)) for i in range(len(sub.keys()))], self._spec)
+        cls = self._cls or self._resolve_class()
+        return td if cls is None else cls._from_tensordict(td)
+
+    def _resolve_class(self) -> type | None:
+        """The tensorclass, only if its module is already imported (nothing is imported here)."""
+        module, _, qualname = self.meta.get("class", "").rpartition(".")
+        obj = sys.modules.get(module)
+        for part in qualname.split("."):
+            obj = getattr(obj, part, None)
+        if obj is not None and callable(getattr(obj, "_from_tensordict", None)):
+            self._cls = obj
+        return self._cls
+
+    @property
+    def tag_columns(self) -> bool:
+        """Whether sampled data carries the tag columns (only TensorDicts have room for them)."""
+        return self.kind == "tensordict"
+
+
+# -- schema ---------------------------------------------------------------------------
+
+
+def spec_of(row: TensorDictBase) -> dict[str, dict]:
+    """``{path: {"dtype", "shape"}}`` of one row (a TensorDict with batch size ``[]``)."""
+    spec = {}
+    for key, value in row.items(include_nested=True, leaves_only=True):
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
+        spec[_backend.key_to_path(key)] = {
+            "dtype": _backend.torch_dtype_name(value.dtype),
+            "shape": list(value.shape),
+        }
+    return spec
+
+
+def check_against(schema: dict[str, dict], data: TensorDictBase, batch_dims: int, where: str) -> tuple[list, list]:
+    """Compares ``data`` (without tags) with ``schema``; returns ``(new_paths, missing_paths)``.
+
+    Raises, naming the key, on a dtype or per-row shape that differs from the
+    stored one, or on a leaf that is not a tensor.
+    """
+    leaves = {}
+    for key, value in data.items(include_nested=True, leaves_only=True):
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
+        leaves[_backend.key_to_path(key)] = value
+    new, missing = [], []
+    for path, value in leaves.items():
+        spec = schema.get(path)
+        dtype = _backend.torch_dtype_name(value.dtype)
+        if spec is None:
+            new.append(path)
+            continue
+        shape = list(value.shape[batch_dims:])
+        if dtype != spec["dtype"] or shape != spec["shape"]:
+            raise ValueError(
+                f"Key {_backend.path_to_key(path)!r}: got dtype {dtype} and per-row shape {shape}, "
+                f"but the store at {where} holds dtype {spec['dtype']} and shape {spec['shape']}. "
+                f"Cast or reshape the data before writing."
+            )
+    for path in schema:
+        if path not in leaves:
+            missing.append(path)
+    return new, missing
+
+
+# -- packed mirror ----------------------------------------------------------------------
+
+
+class PackedLayout:
+    """Byte offsets of every leaf inside one packed row.
+
+    Leaves are ordered by item size (largest first) so each starts aligned to
+    its own item size, and the row is padded to 8 bytes: every column is then a
+    valid strided view of the ``uint8`` buffer.
+
+    Example:
+        >>> layout = PackedLayout({"a": {"dtype": "float32", "shape": [3]}, "b": {"dtype": "int64", "shape": []}})
+        >>> layout.row_bytes, [(p, o) for p, o, *_ in layout.fields]
+        (24, [('b', 0), ('a', 8)])
+    """
+
+    def __init__(self, schema: dict[str, dict]) -> None:
+        fields = []
+        items = sorted(
+            schema.items(), key=lambda kv: -_backend.numpy_dtype(_backend.torch_dtype(kv[1]["dtype"])).itemsize
+        )
+        off = 0
+        for path, spec in items:
+            dtype = _backend.torch_dtype(spec["dtype"])
+            size = _backend.numpy_dtype(dtype).itemsize
+            off = -(-off // size) * size
+            nbytes = size * math.prod(spec["shape"])
+            fields.append((path, off, nbytes, dtype, tuple(spec["shape"])))
+            off += nbytes
+        self.fields = fields
+        self.row_bytes = max(8, -(-off // 8) * 8)
+        # nested dict skeleton: ("next", "obs") -> {"next": {"obs": ...}}
+        self._keys = [_backend.path_to_key(p) for p, *_ in fields]
+
+    def allocate(self, batch_shape: tuple[int, ...], device: Any) -> torch.Tensor:
+        # empty, not zeros: the OS maps untouched pages lazily, so a 1M-row mirror
+        # costs nothing until rows arrive (rows past len are never read, and the
+        # commit engine zero-fills them before they reach the disk)
+        return torch.empty((*batch_shape, self.row_bytes), dtype=torch.uint8, device=device)
+
+    def views(self, buf: torch.Tensor) -> TensorDictBase:
+        """A TensorDict of strided views of ``buf`` (``[*batch, row_bytes]``), one per leaf."""
+        batch = buf.shape[:-1]
+        source: dict = {}
+        for key, (_, off, nbytes, dtype, shape) in zip(self._keys, self.fields):
+            col = buf[..., off : off + nbytes].view(dtype).view(*batch, *shape)
+            if isinstance(key, str):
+                source[key] = col
+            else:
+                node = source
+                for part in key[:-1]:
+                    node = node.setdefault(part, {})
+                node[key[-1]] = col
+        return _unsafe_td(source, batch, buf.device)
+
+
+def _unsafe_td(source: dict, batch: torch.Size, device) -> TensorDictBase:
+    """``TensorDict(source, batch)`` without re-validating shapes we built (8x faster)."""
+    out = {k: _unsafe_td(v, batch, device) if isinstance(v, dict) else v for k, v in source.items()}
+    return TensorDict._new_unsafe(out, batch_size=torch.Size(batch), device=device)
+
+
+def nested_key(path: str) -> NestedKey:
+    return _backend.path_to_key(path)
+
+
+def schema_json(schema: dict[str, dict]) -> str:
+    return json.dumps(schema, sort_keys=True)
+
+
+def env_names_of(value: Any, n: int) -> list[str] | None:
+    """Env names carried by a non-tensor ``"env"`` entry, else ``None``."""
+    if isinstance(value, NonTensorStack):
+        return [str(x) for x in value.tolist()]
+    if isinstance(value, NonTensorData):
+        return [str(value.data)] * n
+    return None

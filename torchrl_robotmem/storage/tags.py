@@ -1,0 +1,125 @@
+"""Episode / run / env tags: pure functions over tensors and arrays, no Zarr, no TorchRL.
+
+Every stored row carries three int64 tags written by the storage itself:
+``episode`` (unique across runs), ``run`` (one per writing session) and ``env``
+(an index into the store's env-name table). This module computes them.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+__all__ = ["TAG_KEYS", "UNKNOWN_ENV", "EpisodeTagger", "open_episode_ends"]
+
+#: Row tags written by the storage itself (int64 scalars per row).
+TAG_KEYS = ("episode", "run", "env")
+#: The env code of rows written without an env name.
+UNKNOWN_ENV = -1
+
+
+class EpisodeTagger:
+    """Assigns global episode ids to batches of transitions, continuing episodes across batches.
+
+    Episodes come from the collector's ``("collector", "traj_ids")`` when the
+    batch has them (mapped past every id already handed out, since trajectory
+    ids restart at 0 with every collector), else from one stream of
+    transitions split after each ``done``. An episode left open at the end of a
+    batch continues in the next one.
+
+    Args:
+        next_id (int): the first id this tagger may hand out.
+
+    Example:
+        >>> import numpy as np
+        >>> tagger = EpisodeTagger(next_id=10)
+        >>> tagger.assign(np.array([False, True, False]), None).tolist()
+        [10, 10, 11]
+        >>> tagger.assign(np.array([True, False]), None).tolist()  # 11 continues
+        [11, 12]
+    """
+
+    def __init__(self, next_id: int = 0) -> None:
+        self.next_id = int(next_id)
+        self._open: dict[int, int] = {}  # stream key -> id of its open episode
+
+    def close_stream(self) -> None:
+        """The done-split stream's open episode ends here (a boundary learnt late)."""
+        self._open.pop(-1, None)
+
+    def reset(self) -> None:
+        self._open = {}
+
+    def assign(self, done: np.ndarray, traj: np.ndarray | None, *, continue_open: bool = True) -> torch.Tensor:
+        """Episode ids (int64 tensor) for ``n`` transitions in write order.
+
+        Args:
+            done (np.ndarray): bool ``[n]``, True on the last transition of an episode.
+            traj (np.ndarray, optional): int ``[n]`` collector trajectory ids.
+            continue_open (bool): whether episodes open from earlier batches may continue.
+        """
+        n = len(done)
+        if not continue_open:
+            self._open = {}
+        if traj is not None:
+            keys = traj.astype(np.int64)
+        else:  # one stream split after done flags: keys -1, -2, ...
+            keys = -1 - (np.cumsum(done) - done)
+        # numpy, not torch: these arrays are tiny and this runs on every extend
+        uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+        last = n - 1 - np.unique(keys[::-1], return_index=True)[1]
+        open_ = self._open
+        for k in [k for k in open_ if k < -1]:  # a done-split stream only continues its -1
+            open_.pop(k)
+        ids = np.empty(len(uniq), dtype=np.int64)
+        next_id = self.next_id
+        order = np.argsort(first)
+        for j in order:  # new ids in order of first appearance
+            key = int(uniq[j])
+            if key in open_:
+                ids[j] = open_[key]
+            else:
+                ids[j] = next_id
+                next_id += 1
+        open_.pop(-1, None)
+        for j in order:  # in order of appearance: the batch's last segment wins
+            key = int(uniq[j])
+            if done[last[j]]:
+                open_.pop(key, None)
+            elif key >= 0 or last[j] == n - 1:
+                open_[-1 if key < 0 else key] = int(ids[j])
+        self.next_id = next_id
+        return torch.from_numpy(ids[inv.reshape(-1)])
+
+
+def open_episode_ends(
+    run: torch.Tensor, episode: torch.Tensor, done: torch.Tensor, *, cursor: int, full: bool
+) -> torch.Tensor:
+    """Rows that end an episode of the latest run without being marked done.
+
+    A run that stopped or crashed mid-episode would otherwise merge that episode
+    with the next run's first one (hindsight relabelling works within episodes).
+
+    Args:
+        run, episode (torch.Tensor): int64 ``[n]`` tags of the stored rows.
+        done (torch.Tensor): bool ``[n]``, ``("next", "done")`` of the rows.
+        cursor (int): the writer's cursor (where a full ring starts).
+        full (bool): whether the storage is a full ring.
+
+    Returns:
+        the row positions (int64) to mark done and truncated.
+
+    Example:
+        >>> run = torch.tensor([0, 1, 1, 1, 1]); episode = torch.tensor([0, 1, 1, 2, 2])
+        >>> done = torch.tensor([True, False, True, False, False])
+        >>> open_episode_ends(run, episode, done, cursor=5, full=False).tolist()
+        [4]
+    """
+    n = run.numel()
+    if n == 0:
+        return torch.zeros(0, dtype=torch.long)
+    rows = (run == run.max()).nonzero().squeeze(-1)
+    order = (rows - cursor) % n if full else rows  # write order: a full ring starts at the cursor
+    _, inv = torch.unique(episode[rows], return_inverse=True)
+    last = torch.full((int(inv.max()) + 1,), -1, dtype=torch.long).scatter_reduce(0, inv, order, reduce="amax")
+    last_rows = (last + cursor) % n if full else last
+    return last_rows[~done[last_rows]]
