@@ -220,14 +220,17 @@ def collect(
     seed: int = 0,
     backend: str = "torchrl",
     max_size: int | None = None,
+    base: ParamsT | None = None,
     rb: TensorDictReplayBuffer | None = None,
     log: Callable[[str], None] | None = None,
 ) -> dict:
     """Runs ``episodes`` scripted episodes of ``task`` and writes them to the memory at ``path``.
 
     Episode ``e`` draws its parameters from ``np.random.default_rng([seed, e])``
-    (``noise`` times :data:`NOISE` around the defaults). With ``backend="gym"``
-    episode ``e`` is reset with seed ``seed * 1_000_003 + e``.
+    (``noise`` times :data:`NOISE` around ``base``, by default the task's
+    defaults). With ``backend="gym"`` episode ``e`` is reset with seed
+    ``seed * 1_000_003 + e``. ``rb`` writes into an open buffer instead of
+    opening ``path`` (rows are tagged with the task's env id).
 
     Returns:
         ``{"env", "episodes", "successes", "success_rate", "rows", "seconds", "path"}``.
@@ -238,7 +241,7 @@ def collect(
         raise ValueError(f"backend must be 'torchrl' or 'gym', got {backend!r}.")
 
     def param_fn(e, obs, goal):
-        return noisy_params(task, noise, np.random.default_rng([seed, e]))
+        return noisy_params(task, noise, np.random.default_rng([seed, e]), base)
 
     own = rb is None
     if own:

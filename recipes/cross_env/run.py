@@ -1,0 +1,341 @@
+"""Cross-environment transfer: do FetchPush memories help a scripted FetchSlide controller?
+
+One command builds the memories, runs every arm on the same FetchSlide episodes
+(paired by env seed), and writes ``results.json``, ``report.md`` and
+``cross_env.png`` to ``--out``:
+
+    python -m recipes.cross_env.run                       # the pre-registered experiment (docs/cross_env.md)
+    python -m recipes.cross_env.run seeds=1 episodes=2 push_episodes=2 slide_episodes=2 \
+        tune_episodes=2 speeds=0.8 out=/tmp/cross_env     # smoke run
+
+Per seed (replicate) ``s`` one memory (a :class:`~torchrl_robotmem.ZarrStorage`)
+holds ``push_episodes`` noisy scripted FetchPush episodes and ``slide_episodes``
+noisy FetchSlide episodes (``recipes.scripted.collect``); every arm then runs the
+same ``episodes`` FetchSlide env seeds. What the memory may change, the key it
+is searched by, ``k`` and the filters are fixed in :data:`PREREGISTERED`.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from recipes.scripted.collect import DISTANCE_SCALE, collect, episode_geometry, gym_episodes, open_memory
+from recipes.scripted.controllers import StrikeParams, default_params
+from recipes.scripted.recall_params import SUCCESS_KEY, episode_index, mean_params, recall_episodes
+
+from .stats import mcnemar, wilson
+
+PUSH, SLIDE = "FetchPush-v4", "FetchSlide-v4"
+
+#: Fixed before the main run (docs/cross_env.md, "Pre-registration").
+PREREGISTERED = {
+    "primary": ("pooled_memory", "pooled_control"),
+    "alpha": 0.01,
+    "min_effect": 0.10,
+    "k": 5,
+    # what memory supplies: how to strike. Where the stroke ends (strike_length,
+    # strike_reach) is the task's own choice and stays at FetchSlide's defaults.
+    "supplied": ["approach_offset", "approach_height", "strike_height", "aim_angle", "strike_speed"],
+    "key": "geometry/scaled_distance",   # object->target xy distance / the task's median distance
+    "raw_key": "geometry/distance",      # secondary arm push_memory_raw only
+    "success_only": True,                # episode_success > 0.5
+    "tuned": "strike_speed",             # the baseline's only tuned parameter, on held-out seeds
+}
+
+#: arm -> (label, description)
+ARMS: dict[str, tuple[str, str]] = {
+    "baseline": ("baseline", "tuned default parameters"),
+    "push_control": ("Push control", "mean of the supplied parameters over all FetchPush successes"),
+    "push_memory": ("Push memory", "mean over the k FetchPush successes nearest in scaled distance"),
+    "push_memory_raw": ("Push memory (raw)", "the same, nearest in raw distance (secondary)"),
+    "pooled_control": ("pooled control", "mean over all FetchSlide successes of the pooled memory "
+                       "(FetchPush successes only if it has none)"),
+    "pooled_memory": ("pooled memory", "mean over the k FetchSlide successes nearest in scaled distance, "
+                      "topped up with the nearest FetchPush successes"),
+    "pooled_mixed": ("pooled, env-blind", "mean over the k successes of either env nearest in scaled "
+                     "distance (secondary)"),
+}
+
+# Env seeds: disjoint ranges for tuning, memories and evaluation.
+_TUNE_SEED = 900_000
+_EVAL_SEED = 10_000_000
+
+
+def _eval_seeds(replicate: int, episodes: int) -> list[int]:
+    return [_EVAL_SEED + replicate * 100_000 + i for i in range(episodes)]
+
+
+# -- arms ----------------------------------------------------------------------------
+
+ParamFn = Callable[[int, np.ndarray, np.ndarray], StrikeParams]
+
+
+def run_arm(param_fn: ParamFn, seeds: list[int]) -> tuple[np.ndarray, list[float]]:
+    """FetchSlide outcomes (0/1, last-step ``is_success``) and strike speeds, one per env seed."""
+    outcomes, speeds = [], []
+    for td in gym_episodes("slide", param_fn, seeds):
+        outcomes.append(float(td["episode_success"][0]))
+        speeds.append(float(td["params", "strike_speed"][0]))
+    return np.asarray(outcomes), speeds
+
+
+def tune_baseline(speeds: list[float], episodes: int, log=print) -> tuple[StrikeParams, dict]:
+    """FetchSlide defaults with the strike speed that succeeds most on held-out env seeds."""
+    seeds = [_TUNE_SEED + i for i in range(episodes)]
+    table = {}
+    for v in speeds:
+        p = dataclasses.replace(default_params("slide"), strike_speed=float(v))
+        table[float(v)] = float(run_arm(lambda e, o, g, p=p: p, seeds)[0].mean())
+        log(f"tune: strike_speed={v:.2f} -> {table[float(v)]:.1%} on {episodes} held-out episodes")
+    best = max(table, key=lambda v: (table[v], -abs(v - default_params("slide").strike_speed)))
+    return dataclasses.replace(default_params("slide"), strike_speed=best), table
+
+
+def _key(name: str) -> tuple[str, str]:
+    return tuple(name.split("/"))  # type: ignore[return-value]
+
+
+def make_arms(storage, baseline: StrikeParams, k: int) -> dict[str, ParamFn]:
+    """Parameter sources of every scripted arm over one memory."""
+    names = PREREGISTERED["supplied"]
+    scaled = episode_index(storage, _key(PREREGISTERED["key"]))
+    raw = episode_index(storage, _key(PREREGISTERED["raw_key"]))
+
+    def apply(means: dict | None) -> StrikeParams:
+        return baseline if means is None else dataclasses.replace(baseline, **means)
+
+    def successes(env: str):
+        rows = storage[: len(storage)]
+        keep = (rows[SUCCESS_KEY] > 0.5) & (rows["env"] == storage.env_code(env)) & (rows["step_count"].reshape(-1) == 0)
+        return rows[keep]
+
+    push_mean = apply(mean_params(successes(PUSH), names))
+    slide_rows = successes(SLIDE)
+    pooled_mean = apply(mean_params(slide_rows, names)) if slide_rows.shape[0] else push_mean
+
+    def geometry(obs, goal):
+        geo = episode_geometry("slide", obs, goal)
+        return float(geo["scaled_distance"][0]), float(geo["distance"][0])
+
+    def push_memory(e, obs, goal):
+        q, _ = geometry(obs, goal)
+        return apply(mean_params(recall_episodes(scaled, q, k, env=PUSH), names))
+
+    def push_memory_raw(e, obs, goal):
+        _, d = geometry(obs, goal)
+        return apply(mean_params(recall_episodes(raw, d, k, env=PUSH), names))
+
+    def pooled_memory(e, obs, goal):
+        q, _ = geometry(obs, goal)
+        own = recall_episodes(scaled, q, k, env=SLIDE)
+        if own.shape[0] < k:
+            other = recall_episodes(scaled, q, k - own.shape[0], env=PUSH)
+            own = torch.cat([own, other.select(*own.keys(True, True))]) if own.shape[0] else other
+        return apply(mean_params(own, names))
+
+    def pooled_mixed(e, obs, goal):
+        q, _ = geometry(obs, goal)
+        return apply(mean_params(recall_episodes(scaled, q, k, env=[PUSH, SLIDE]), names))
+
+    return {
+        "baseline": lambda e, o, g: baseline,
+        "push_control": lambda e, o, g: push_mean,
+        "push_memory": push_memory,
+        "push_memory_raw": push_memory_raw,
+        "pooled_control": lambda e, o, g: pooled_mean,
+        "pooled_memory": pooled_memory,
+        "pooled_mixed": pooled_mixed,
+    }
+
+
+def learned_arm(**kwargs) -> dict:
+    """Placeholder: FetchSlide SAC+HER with the pooled memory as prior vs from scratch, same budget.
+
+    Needs ``recipes/her`` to start from a prior memory (issue 9, "Learning
+    FetchPush on a CPU with a prior memory"); not run until then.
+    """
+    return {"status": "not run", "reason": "needs the HER recipe with a prior memory (recipes/her)"}
+
+
+# -- memory --------------------------------------------------------------------------
+
+
+def build_memory(path: str, replicate: int, push_episodes: int, slide_episodes: int,
+                 baseline: StrikeParams, log=print) -> dict:
+    """FetchPush then FetchSlide noisy scripted episodes in one ZarrStorage (env-tagged)."""
+    if os.path.exists(path):
+        shutil.rmtree(path)
+    rb = open_memory(path, max(50 * (push_episodes + slide_episodes), 1000))
+    try:
+        push = collect("push", push_episodes, path, noise=1.0, seed=100 + replicate, backend="gym", rb=rb)
+        slide = collect("slide", slide_episodes, path, noise=1.0, seed=200 + replicate, backend="gym",
+                        base=baseline, rb=rb)
+    finally:
+        rb.storage.close()
+    log(f"memory {replicate}: FetchPush {push['successes']}/{push_episodes}, "
+        f"FetchSlide {slide['successes']}/{slide_episodes} successes")
+    return {"push": push, "slide": slide}
+
+
+# -- report --------------------------------------------------------------------------
+
+
+def summarise(outcomes: dict[str, list[np.ndarray]], speeds: dict[str, list]) -> dict:
+    arms = {}
+    for arm, per_seed in outcomes.items():
+        allv = np.concatenate(per_seed)
+        s, n = int(allv.sum()), int(allv.size)
+        lo, hi = wilson(s, n)
+        arms[arm] = {
+            "successes": s, "n": n, "rate": s / max(n, 1), "ci95": [lo, hi],
+            "per_seed": [float(x.mean()) for x in per_seed],
+            "mean_strike_speed": float(np.mean(speeds[arm])),
+        }
+    flat = {a: np.concatenate(v) for a, v in outcomes.items()}
+    tests = {}
+    for mem, ctl in [("pooled_memory", "pooled_control"), ("pooled_memory", "baseline"),
+                     ("push_memory", "push_control"), ("push_memory", "baseline"),
+                     ("push_control", "baseline"), ("push_memory_raw", "push_control"),
+                     ("pooled_control", "baseline"), ("pooled_mixed", "pooled_control")]:
+        tests[f"{mem} vs {ctl}"] = mcnemar(flat[mem], flat[ctl])
+    return {"arms": arms, "tests": tests}
+
+
+def plot(summary: dict, path: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    arms = list(summary["arms"])
+    rates = np.array([summary["arms"][a]["rate"] for a in arms]) * 100
+    ci = np.array([summary["arms"][a]["ci95"] for a in arms]) * 100
+    err = np.stack([rates - ci[:, 0], ci[:, 1] - rates])
+    colors = ["#999999" if "baseline" in a else "#6baed6" if "control" in a else "#fd8d3c" for a in arms]
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    x = np.arange(len(arms))
+    ax.bar(x, rates, yerr=err, capsize=4, color=colors, edgecolor="black", linewidth=0.5)
+    for i, a in enumerate(arms):
+        ys = np.array(summary["arms"][a]["per_seed"]) * 100
+        ax.scatter(np.full(len(ys), i) + np.linspace(-0.15, 0.15, len(ys)), ys, s=10, color="black", zorder=3)
+    ax.set_xticks(x, [ARMS[a][0] for a in arms], rotation=20, ha="right")
+    ax.set_ylabel("FetchSlide success (%)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def report_md(res: dict) -> str:
+    cfg, summ = res["config"], res["summary"]
+    lines = [
+        f"FetchSlide, {cfg['seeds']} seeds x {cfg['episodes']} paired episodes per arm; memories of "
+        f"{cfg['push_episodes']} FetchPush + {cfg['slide_episodes']} FetchSlide noisy scripted episodes per seed; "
+        f"k = {cfg['k']}; baseline strike_speed {res['baseline']['strike_speed']:.2f} (tuned on "
+        f"{cfg['tune_episodes']} held-out episodes).",
+        "",
+        "| arm | success | 95% CI (Wilson) | per seed | mean strike speed |",
+        "|---|---|---|---|---|",
+    ]
+    for arm, a in summ["arms"].items():
+        per = " ".join(f"{100 * r:.1f}" for r in a["per_seed"])
+        lines.append(f"| {ARMS[arm][0]} | {100 * a['rate']:.1f}% ({a['successes']}/{a['n']}) | "
+                     f"{100 * a['ci95'][0]:.1f} - {100 * a['ci95'][1]:.1f}% | {per} | {a['mean_strike_speed']:.3f} |")
+    lines += ["", "| paired test (exact McNemar) | difference | a only / b only | p |", "|---|---|---|---|"]
+    for name, t in summ["tests"].items():
+        lines.append(f"| {name} | {100 * t['diff']:+.1f} pp | {t['a_only']} / {t['b_only']} | {t['p']:.2g} |")
+    prim = summ["tests"][" vs ".join(PREREGISTERED["primary"])]
+    met = prim["diff"] >= PREREGISTERED["min_effect"] and prim["p"] < PREREGISTERED["alpha"]
+    lines += ["", f"Primary contrast {' vs '.join(PREREGISTERED['primary'])}: {100 * prim['diff']:+.1f} pp, "
+              f"p = {prim['p']:.2g}: goal (>= +{100 * PREREGISTERED['min_effect']:.0f} pp at p < "
+              f"{PREREGISTERED['alpha']}) {'met' if met else 'NOT met'}.",
+              f"Learned arm: {res['learned']['status']} ({res['learned']['reason']})."]
+    return "\n".join(lines) + "\n"
+
+
+# -- main ----------------------------------------------------------------------------
+
+
+def _parse(argv):
+    p = argparse.ArgumentParser(prog="python -m recipes.cross_env.run", description=__doc__.split("\n")[0])
+    p.add_argument("--seeds", type=int, default=5, help="replicates (a memory and an eval set each)")
+    p.add_argument("--episodes", type=int, default=200, help="FetchSlide episodes per arm and seed")
+    p.add_argument("--push_episodes", type=int, default=500)
+    p.add_argument("--slide_episodes", type=int, default=300)
+    p.add_argument("--tune_episodes", type=int, default=200, help="held-out episodes per tuned speed")
+    p.add_argument("--speeds", default="0.65,0.7,0.75,0.8,0.85,0.9,0.95")
+    p.add_argument("--k", type=int, default=PREREGISTERED["k"])
+    p.add_argument("--workdir", default="memory/cross_env", help="where the memories are written")
+    p.add_argument("--out", default="docs/cross_env", help="results.json, report.md, cross_env.png")
+    argv = [f"--{a.split('=', 1)[0]}={a.split('=', 1)[1]}" if "=" in a and not a.startswith("-") else a
+            for a in argv]
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    torch.set_num_threads(1)
+    args = _parse(sys.argv[1:] if argv is None else argv)
+    os.makedirs(args.out, exist_ok=True)
+    os.makedirs(args.workdir, exist_ok=True)
+    t0 = time.time()
+
+    def log(msg):
+        print(f"[{time.time() - t0:7.1f}s] {msg}", flush=True)
+
+    speeds = [float(v) for v in str(args.speeds).split(",")]
+    baseline, tune_table = tune_baseline(speeds, args.tune_episodes, log)
+    log(f"baseline strike_speed = {baseline.strike_speed}")
+
+    outcomes = {a: [] for a in ARMS}
+    used_speeds = {a: [] for a in ARMS}
+    memories = []
+    for r in range(args.seeds):
+        path = os.path.join(args.workdir, f"seed{r}.zarr")
+        memories.append(build_memory(path, r, args.push_episodes, args.slide_episodes, baseline, log))
+        rb = open_memory(path)
+        try:
+            arms = make_arms(rb.storage, baseline, args.k)
+            seeds = _eval_seeds(r, args.episodes)
+            for arm, fn in arms.items():
+                out, sp = run_arm(fn, seeds)
+                outcomes[arm].append(out)
+                used_speeds[arm] += sp
+                log(f"seed {r}: {arm:16s} {out.mean():.1%}")
+        finally:
+            rb.storage.close()
+
+    res = {
+        "config": {**vars(args), "speeds": speeds},
+        "preregistered": PREREGISTERED,
+        "distance_scale": DISTANCE_SCALE,
+        "baseline": dataclasses.asdict(baseline),
+        "tuning": tune_table,
+        "memories": memories,
+        "summary": summarise(outcomes, used_speeds),
+        "outcomes": {a: [o.astype(int).tolist() for o in v] for a, v in outcomes.items()},
+        "learned": learned_arm(),
+        "seconds": round(time.time() - t0, 1),
+    }
+    with open(os.path.join(args.out, "results.json"), "w") as f:
+        json.dump(res, f, indent=1)
+    md = report_md(res)
+    with open(os.path.join(args.out, "report.md"), "w") as f:
+        f.write(md)
+    plot(res["summary"], os.path.join(args.out, "cross_env.png"),
+         f"FetchSlide success, {args.seeds} seeds x {args.episodes} paired episodes per arm (95% Wilson CI; dots: seeds)")
+    print(md)
+    return res
+
+
+if __name__ == "__main__":
+    main()
