@@ -1,0 +1,53 @@
+"""recipes/cross_env: statistics, and the experiment command end to end on 2 episodes per arm."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from scipy.stats import binomtest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.append(str(ROOT))
+
+from recipes.cross_env import run  # noqa: E402
+from recipes.cross_env.stats import mcnemar, wilson  # noqa: E402
+
+torch.set_num_threads(1)
+
+
+def test_wilson_known_values():
+    assert wilson(10, 100) == pytest.approx((0.0552, 0.1744), abs=1e-4)
+    assert wilson(0, 20)[0] == 0.0 and wilson(20, 20)[1] == 1.0
+    assert wilson(0, 0) == (0.0, 1.0)
+
+
+def test_mcnemar_uses_discordant_pairs_only():
+    a = [1] * 30 + [1] * 12 + [0] * 3 + [0] * 55
+    b = [1] * 30 + [0] * 12 + [1] * 3 + [0] * 55
+    t = mcnemar(a, b)
+    assert (t["a_only"], t["b_only"]) == (12, 3)
+    assert t["p"] == pytest.approx(binomtest(12, 15, 0.5).pvalue)
+    assert t["diff"] == pytest.approx(0.09)
+    assert mcnemar([1, 0], [1, 0])["p"] == 1.0
+    with pytest.raises(ValueError):
+        mcnemar([1], [1, 0])
+
+
+def test_cross_env_command_end_to_end(tmp_path):
+    out = tmp_path / "out"
+    res = run.main([
+        "seeds=1", "episodes=2", "push_episodes=2", "slide_episodes=2", "tune_episodes=2",
+        "speeds=0.8", f"out={out}", f"workdir={tmp_path / 'mem'}",
+    ])
+    assert set(res["summary"]["arms"]) == set(run.ARMS)
+    for arm in run.ARMS:
+        assert res["summary"]["arms"][arm]["n"] == 2
+    assert res["learned"]["status"] == "not run"
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["preregistered"]["primary"] == ["pooled_memory", "pooled_control"]
+    assert (out / "cross_env.png").stat().st_size > 0
+    assert "Primary contrast" in (out / "report.md").read_text()
