@@ -28,7 +28,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from recipes.scripted.collect import DISTANCE_SCALE, collect, episode_geometry, gym_episodes, open_memory
+from recipes.scripted.collect import DISTANCE_SCALE, collect, episode_geometry, gym_episodes, kv_args, open_memory
 from recipes.scripted.controllers import StrikeParams, default_params
 from recipes.scripted.recall_params import SUCCESS_KEY, episode_index, mean_params, recall_episodes
 
@@ -277,9 +277,7 @@ def _parse(argv):
     p.add_argument("--k", type=int, default=PREREGISTERED["k"])
     p.add_argument("--workdir", default="memory/cross_env", help="where the memories are written")
     p.add_argument("--out", default="docs/cross_env", help="results.json, report.md, cross_env.png")
-    argv = [f"--{a.split('=', 1)[0]}={a.split('=', 1)[1]}" if "=" in a and not a.startswith("-") else a
-            for a in argv]
-    return p.parse_args(argv)
+    return p.parse_args(kv_args(argv))
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -51,6 +51,7 @@ __all__ = [
     "collect",
     "episode_geometry",
     "gym_episodes",
+    "kv_args",
     "noisy_params",
     "open_memory",
     "torchrl_episodes",
@@ -279,9 +280,12 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--path", default=None, help="default: memory/scripted/<env>.zarr")
     parser.add_argument("--backend", default="torchrl", choices=["torchrl", "gym"])
     parser.add_argument("--max_size", type=int, default=None)
-    # hydra-style key=value
-    argv = [f"--{a.split('=', 1)[0]}={a.split('=', 1)[1]}" if "=" in a and not a.startswith("-") else a for a in argv]
-    return parser.parse_args(argv)
+    return parser.parse_args(kv_args(argv))
+
+
+def kv_args(argv: list[str]) -> list[str]:
+    """Hydra-style ``key=value`` arguments as argparse's ``--key=value``."""
+    return [a if a.startswith("-") or "=" not in a else f"--{a}" for a in argv]
 
 
 def main(argv: list[str] | None = None) -> dict:
