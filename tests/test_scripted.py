@@ -96,3 +96,14 @@ def test_command_line(tmp_path, capsys):
     out = main(["env=slide", "episodes=1", "noise=0", f"path={tmp_path / 's.zarr'}", "--backend", "gym"])
     assert out["env"] == "FetchSlide-v4" and out["rows"] == 50
     assert '"success_rate"' in capsys.readouterr().out
+
+
+def test_batched_env_keeps_per_env_phase():
+    env = make_env("FetchPush-v4", num_envs=2, seed=1)
+    try:
+        policy = ScriptedPolicy("push", num_envs=2)
+        td = env.rollout(50, policy)
+        assert td.batch_size == (2, 50)
+        assert bool((td["next", "is_success"][:, -1] == 1).all())  # both envs solved, each on its own goal
+    finally:
+        env.close()

@@ -80,10 +80,10 @@ class GraspParams:
 
 ParamsT = Union[StrikeParams, GraspParams]
 
-# Defaults per task, tuned on held-out seeds (docs/scripted.md, "Default parameters").
+# Defaults per task. FetchSlide's strike_speed was tuned on held-out env seeds (docs/cross_env.md).
 _DEFAULTS: dict[str, ParamsT] = {
     "push": StrikeParams(),
-    "slide": StrikeParams(strike_speed=0.8, strike_length=0.05, strike_reach=0.0),
+    "slide": StrikeParams(strike_speed=0.75, strike_length=0.05, strike_reach=0.0),
     "pick_and_place": GraspParams(),
 }
 
@@ -158,14 +158,17 @@ class StrikeController(_Controller):
 
     RISE, BEHIND, DESCEND, STRIKE, HOLD = range(5)
 
+    def __init__(self, num_envs: int = 1):
+        super().__init__(num_envs)
+        self._dir = np.zeros((num_envs, 2))  # stroke direction (xy unit vector)
+        self._dist = np.zeros(num_envs)  # object->target xy distance at the episode's start
+
     def reset(self, i, obs, goal, params: StrikeParams) -> None:
         super().reset(i, obs, goal, params)
         line = goal[:2] - obs[3:5]
         dist = float(np.linalg.norm(line))
         line = line / dist if dist > 1e-6 else np.array([1.0, 0.0])
         c, s = np.cos(params.aim_angle), np.sin(params.aim_angle)
-        self._dir = getattr(self, "_dir", np.zeros((self.num_envs, 2)))
-        self._dist = getattr(self, "_dist", np.zeros(self.num_envs))
         self._dir[i] = (c * line[0] - s * line[1], s * line[0] + c * line[1])
         self._dist[i] = dist
 
@@ -213,6 +216,10 @@ class GraspController(_Controller):
 
     ABOVE, DESCEND, CLOSE, LIFT, CARRY = range(5)
 
+    def __init__(self, num_envs: int = 1):
+        super().__init__(num_envs)
+        self._closing = np.zeros(num_envs, dtype=np.int64)  # steps spent closing the fingers
+
     def _act_one(self, i, obs, goal):
         p: GraspParams = self.params[i]
         grip, obj = obs[0:3], obs[3:6]
@@ -230,7 +237,6 @@ class GraspController(_Controller):
             a[:3] = _move(grip, target, 1.0)
             if abs(grip[2] - target[2]) < 0.005:
                 self.phase[i] = phase = self.CLOSE
-                self._closing = getattr(self, "_closing", np.zeros(self.num_envs, dtype=np.int64))
                 self._closing[i] = 0
         if phase == self.CLOSE:
             a[3] = -1.0
