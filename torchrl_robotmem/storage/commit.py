@@ -65,7 +65,7 @@ class CommitEngine:
         self.last_set_time = 0.0
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
-        self.committed_len0 = 0  # committed length along dim 0
+        self.committed_len = 0  # committed length (transitions)
 
     # -- bookkeeping (called under ``cv``) ----------------------------------------
 
@@ -148,7 +148,8 @@ class CommitEngine:
             # Overwriting committed rows (a wrapping ring) commits everything with
             # its metadata, through the journal: rows on disk never lead the
             # metadata, even by a chunk.
-            overwrite = any(lo < self.committed_len0 for lo in self.dirty.values())
+            committed0 = owner._dim0(self.committed_len)
+            overwrite = any(lo < committed0 for lo in self.dirty.values())
             everything = everything or overwrite
             chunks = sorted(self.dirty) if everything else sorted(self._complete_chunks())
             payload = {c: owner._copy_chunk(c) for c in chunks}
@@ -180,7 +181,7 @@ class CommitEngine:
         with self.cv:
             self.inflight -= 1
             if meta is not None:
-                self.committed_len0 = owner._dim0(meta["len"])
+                self.committed_len = int(meta["len"])
                 self.flush_done = max(self.flush_done, target)
             self.cv.notify_all()
 
@@ -282,6 +283,6 @@ class CommitEngine:
         if err is not None:
             raise RuntimeError(
                 f"The background writer of {self.name!r} failed: {type(err).__name__}: {err}. "
-                f"Rows written after the last commit ({self.owner._committed_len} rows) are not "
+                f"Rows written after the last commit ({self.committed_len} rows) are not "
                 f"durable; fix the cause (disk space, permissions) and reopen the store."
             ) from err

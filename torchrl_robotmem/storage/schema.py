@@ -219,7 +219,7 @@ class PackedLayout:
         batch = buf.shape[:-1]
         source: dict = {}
         for key, (_, off, nbytes, dtype, shape) in zip(self._keys, self.fields):
-            col = buf[..., off : off + nbytes].view(dtype).view(*batch, *shape)
+            col = buf[..., off : off + nbytes].view(dtype).view(torch.Size((*batch, *shape)))
             if isinstance(key, str):
                 source[key] = col
             else:

@@ -1,93 +1,50 @@
-"""A TorchRL replay-buffer storage that lives in a Zarr v3 store and survives the process.
+"""``ZarrStorage``: a TorchRL replay-buffer storage that lives in a Zarr v3 store and survives the process.
 
-:class:`ZarrStorage` is a :class:`~torchrl.data.LazyTensorStorage` whose rows are
-also written through to a Zarr group on disk (or any Zarr store URL). Samplers
-read the RAM mirror, so sampling runs at in-memory speed; a background thread
-writes whole chunks to Zarr and then commits the metadata that makes them
-visible. Constructing a ``ZarrStorage`` on an existing store restores every
-row, the length and the writer's cursor, so a buffer built on it continues
-where the last process stopped.
+A :class:`~torchrl.data.LazyTensorStorage` whose rows are also written through
+to a Zarr group on disk (or any Zarr store URL). Samplers read the RAM mirror,
+so sampling runs at in-memory speed; a background thread writes whole chunks
+to Zarr and then commits the metadata that makes them visible. Constructing a
+``ZarrStorage`` on an existing store restores every row, the length and the
+writer's cursor, so a buffer built on it continues where the last process
+stopped.
 
-See ``docs/storage.md`` for the on-disk layout and the commit protocol.
+This class composes the package's parts (see :mod:`torchrl_robotmem.storage`);
+``docs/storage.md`` describes the on-disk layout and the commit protocol.
 """
 from __future__ import annotations
 
-import asyncio
-import json
 import math
 import os
 import threading
-import time
 import weakref
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import torchrl
-from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase, is_tensor_collection
+from tensordict import TensorDict, TensorDictBase, is_tensor_collection
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
-from zarr.core.sync import sync as zarr_sync
-
-from . import _backend as _zarr
-from . import lifecycle as _lifecycle
+from . import _backend, lifecycle, writer_sync
 from ._backend import FORMAT_MARKER, FORMAT_VERSION
+from .checkpointer import ZarrCheckpointer
+from .commit import CommitEngine
+from .schema import DataKind, PackedLayout, check_against, env_names_of, spec_of
+from .tags import TAG_KEYS, UNKNOWN_ENV, EpisodeTagger, open_episode_ends
 
 __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
 
-#: Row tags written by the storage itself (int64 scalars per row).
-TAG_KEYS = ("episode", "run", "env")
 _DONE_KEY = ("next", "done")
 _TRUNCATED_KEY = ("next", "truncated")
 _TRAJ_KEY = ("collector", "traj_ids")
 # Written into the caller's TensorDict by TorchRL's TensorDictRoundRobinWriter;
 # it equals the row position, so it is not stored (sample() adds it back).
 _DROPPED_KEYS = ("index",)
-_UNKNOWN_ENV = -1
-# How long the writer thread waits for extend() calls to pause before writing
-# complete chunks (seconds).
-_IDLE_GAP = 0.005
 
 # The writable handle of each store opened for writing in this process. A new
 # writable handle on the same store takes the writer over from the old one.
 _OPEN_WRITERS: dict[str, weakref.ref] = {}
-
-
-class ZarrCheckpointer(StorageCheckpointerBase):
-    """Checkpointer for :class:`ZarrStorage`: the store is its own checkpoint.
-
-    ``rb.dumps(path)`` flushes the store and records a pointer to it
-    (``zarr_storage.json``) instead of copying every row; ``rb.loads(path)``
-    checks that the buffer's storage is that same store. ``torchrl.checkpoint.
-    Checkpoint`` goes through the same two calls.
-    """
-
-    def dumps(self, storage: ZarrStorage, path: str | os.PathLike) -> None:
-        storage.flush()
-        path = Path(path)
-        path.mkdir(parents=True, exist_ok=True)
-        meta = {"store": storage.path, "len": len(storage), "write_count": storage._write_count}
-        with open(path / "zarr_storage.json", "w") as f:
-            json.dump(meta, f)
-
-    def loads(self, storage: ZarrStorage, path: str | os.PathLike) -> None:
-        path = Path(path) / "zarr_storage.json"
-        if not path.exists():
-            raise FileNotFoundError(
-                f"{path} not found: this checkpoint was not written by a buffer on a ZarrStorage."
-            )
-        with open(path) as f:
-            meta = json.load(f)
-        if meta["store"] != storage.path:
-            raise ValueError(
-                f"This checkpoint points to the Zarr store {meta['store']!r}, but the buffer's "
-                f"storage is {storage.path!r}. Build the buffer with "
-                f"ZarrStorage({meta['store']!r}) to resume from it."
-            )
-        # The store holds the newest state, which may be ahead of the checkpoint.
-        storage._restore_writers(force=True)
 
 
 class ZarrStorage(LazyTensorStorage):
@@ -99,31 +56,40 @@ class ZarrStorage(LazyTensorStorage):
     ``ZarrStorage`` on the same path gets every committed row back, with the
     length, the last cursor and the writer's cursor and write count: the next
     ``extend`` appends after the old rows, and a full buffer keeps wrapping
-    around as if nothing had happened.
+    around as if nothing had happened. Nothing needs closing: every writable
+    store is flushed when its process ends (exit, exception, Ctrl-C, SIGTERM).
 
-    Every row is tagged by the storage with three int64 columns: ``"episode"``
-    (unique across runs), ``"run"`` (one per writing session) and ``"env"`` (an
-    integer code; :attr:`env_names` maps codes to names).
+    It takes what :class:`~torchrl.data.LazyTensorStorage` takes: TensorDicts
+    (nested keys, lazy stacks, lists), plain tensors, pytrees of tensors and
+    tensorclasses, with ``ndim >= 2`` layouts (``[num_envs, time]`` for
+    :class:`~torchrl.data.SliceSampler`). Keys may be added after the first
+    write (recorded in the store; older rows read zeros).
+
+    TensorDict rows are tagged by the storage with three int64 columns:
+    ``"episode"`` (unique across runs), ``"run"`` (one per writing session) and
+    ``"env"`` (an integer code; :attr:`env_names` maps codes to names).
 
     Args:
         path (str or os.PathLike or zarr Store): a local directory, a ``*.zip``
             path, or any Zarr/fsspec store URL (``"memory://name"``,
             ``"s3://bucket/key"``, ...).
-        max_size (int, optional): capacity in rows. Required to create a store;
-            when reopening, defaults to the stored capacity. A larger value grows a
-            store that has not wrapped around yet; anything else is an error.
+        max_size (int, optional): capacity in transitions. Required to create a
+            store; when reopening, defaults to the stored capacity. A larger value
+            grows a store that has not wrapped around yet; anything else is an error.
 
     Keyword Args:
         env (str, optional): the environment name rows written from now on are
             tagged with (data that carries its own ``"env"`` entry keeps it).
         read_only (bool, optional): open an existing store for reading only, for
             example while another process writes to it. Defaults to ``False``.
-        chunk_rows (int, optional): rows per Zarr chunk. Defaults to a value that
-            makes chunks of about 4 MiB per row-group, capped at ``max_size``.
-        compressor (str, optional): ``"zstd"`` (the default), ``"blosc"`` (zstd behind
-            a byte shuffle) or ``None``.
-        compression_level (int, optional): codec level. Defaults to 1 (zstd level 1:
-            about twice as fast to write as level 3 for 1% more bytes on robot transitions).
+        ndim (int, optional): number of leading batch dimensions one stored item
+            spans (as in TorchRL): ``2`` stores ``[num_envs, time]`` data as is.
+            Fixed when the store is created. Defaults to 1.
+        chunk_rows (int, optional): rows (along the first dimension) per Zarr
+            chunk. Defaults to about 4 MiB of data per chunk, capped at ``max_size``.
+        compressor (str, optional): ``"blosc"`` (the default: zstd behind a byte
+            shuffle, compressed without holding the GIL), ``"zstd"`` or ``None``.
+        compression_level (int, optional): codec level. Defaults to 1.
         commit_interval (float, optional): seconds after which written rows are
             committed even if their chunk is not full. This bounds what a crash
             can lose. Defaults to 1.0.
@@ -131,6 +97,12 @@ class ZarrStorage(LazyTensorStorage):
             (default). ``False`` makes every write durable before ``set`` returns.
         storage_options (dict, optional): passed to fsspec for URL stores.
         device (str, optional): device of the RAM mirror. Defaults to ``"cpu"``.
+        compilable (bool, optional): as in TorchRL (keeps ``len`` in a plain int
+            instead of a shared ``mp.Value``). Defaults to ``False``.
+        shared_init (bool, optional): TorchRL's way for several processes to
+            write one storage. A store has a single writer process, so ``True`` is
+            refused; see "Multi-process use" in ``docs/storage.md`` (a pickled
+            ``ZarrStorage`` is a read-only handle in the receiving process).
 
     Examples:
         >>> import tempfile, torch
@@ -161,86 +133,81 @@ class ZarrStorage(LazyTensorStorage):
         *,
         env: str | None = None,
         read_only: bool = False,
+        ndim: int = 1,
         chunk_rows: int | None = None,
-        compressor: str | None = "zstd",
+        compressor: str | None = "blosc",
         compression_level: int = 1,
         commit_interval: float = 1.0,
         background: bool = True,
         storage_options: dict | None = None,
         device: str = "cpu",
+        compilable: bool = False,
+        shared_init: bool = False,
     ) -> None:
+        if isinstance(path, (int, np.integer)) and not isinstance(path, bool):
+            raise TypeError(
+                f"ZarrStorage's first argument is the store's path; got the number {path}. "
+                f"Use ZarrStorage(path, max_size), e.g. functools.partial(ZarrStorage, 'memory/run.zarr')."
+            )
         if max_size is not None and int(max_size) <= 0:
             raise ValueError(f"max_size must be a positive integer, got {max_size}.")
         if chunk_rows is not None and int(chunk_rows) <= 0:
             raise ValueError(f"chunk_rows must be a positive integer, got {chunk_rows}.")
         if commit_interval <= 0:
             raise ValueError(f"commit_interval must be > 0 seconds, got {commit_interval}.")
-        _zarr.make_compressors(compressor, compression_level, 4)  # validates the name
-        self.path = path if not isinstance(path, (str, os.PathLike)) else os.fspath(path)
-        if isinstance(self.path, str) and not _zarr.is_url(self.path):
-            self.path = str(Path(self.path).expanduser().absolute())
+        if int(ndim) < 1:
+            raise ValueError(f"ndim must be >= 1, got {ndim}.")
+        if shared_init:
+            raise ValueError(
+                "ZarrStorage(shared_init=True) is not supported: a store has one writer process. "
+                "Write from the main process (iterate the collector there and call rb.extend), and "
+                "give other processes read-only handles: pickle the storage (it arrives read_only) "
+                "or open ZarrStorage(path, read_only=True) there."
+            )
+        _backend.make_compressors(compressor, compression_level, 4)  # validates the name
+        self.path = _backend.normalize_path(path)
         self.read_only = bool(read_only)
+        self._storage_options = storage_options
         self._compressor = compressor
         self._compression_level = int(compression_level)
-        self._commit_interval = float(commit_interval)
-        self._background = bool(background)
         self._lock_file = None
         self._closed = False
-
         self._retired_by: str | None = None
         previous = self._claim_writer() if not self.read_only else None
         try:
-            self._open(path, max_size, env=env, chunk_rows=chunk_rows, storage_options=storage_options, device=device)
+            self._open(max_size, env=env, ndim=int(ndim), chunk_rows=chunk_rows, device=device,
+                       compilable=compilable, commit_interval=commit_interval, background=background)
         except BaseException:
             self._release()
             if previous is not None:
                 previous._take_back_writer(self)
             raise
 
-    def _open(self, path, max_size, *, env, chunk_rows, storage_options, device) -> None:
-        store, self._local_dir = _zarr.open_store(
-            self.path, read_only=self.read_only, storage_options=storage_options
+    # -- opening ----------------------------------------------------------------------
+
+    def _open(self, max_size, *, env, ndim, chunk_rows, device, compilable, commit_interval, background) -> None:
+        store, self._local_dir = _backend.open_store(
+            self.path, read_only=self.read_only, storage_options=self._storage_options
         )
         self._store = store
         if self._local_dir is not None and not self.read_only:
-            self._lock_file = _zarr.WriterLock(self._local_dir)
-            _zarr.remove_partial_files(self._local_dir)  # left by a writer killed mid-chunk
-        self._group = _zarr.open_group(store, read_only=self.read_only)
+            self._lock_file = _backend.WriterLock(self._local_dir)
+            _backend.remove_partial_files(self._local_dir)  # left by a writer killed mid-chunk
+        self._group = _backend.open_group(store, read_only=self.read_only)
         attrs = self._group.attrs.asdict()
-        marker = attrs.get(FORMAT_MARKER)
-        if marker is None:
-            self._create_new(attrs, max_size, chunk_rows)
+        if attrs.get(FORMAT_MARKER) is None:
+            self._create_new(attrs, max_size, chunk_rows, ndim)
             attrs = self._group.attrs.asdict()
-            marker = attrs[FORMAT_MARKER]
-        if not isinstance(marker, dict) or "format_version" not in marker:
-            raise ValueError(f"{self.path!r} has a malformed {FORMAT_MARKER!r} attribute.")
-        if int(marker["format_version"]) > FORMAT_VERSION:
-            raise ValueError(
-                f"{self.path!r} was written in format version {marker['format_version']} by "
-                f"torchrl_robotmem {marker.get('library_version')}; this version reads format "
-                f"<= {FORMAT_VERSION}. Upgrade torchrl_robotmem to open it."
-            )
+        self._check_format(attrs)
         stored_max = int(attrs["max_size"])
-        super().__init__(max_size=stored_max, device=device)
-
+        super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
+        self._engine = CommitEngine(self, self._group, commit_interval=commit_interval, background=background,
+                                    name=str(self.path))
         self._sync_attrs(attrs)
         # This session's state.
         self._run: int | None = None  # allocated at the first write
-        self._open_traj: dict[int, int] = {}  # traj key -> episode id, for open episodes
-        self._env_code = _UNKNOWN_ENV
+        self._env_code = UNKNOWN_ENV
         self._restored_writers: weakref.WeakSet = weakref.WeakSet()
-        self._cv = threading.Condition()
-        self._dirty: dict[int, int] = {}  # chunk id -> smallest dirty row
-        self._first_dirty_time: float | None = None
-        self._meta_dirty = False
-        self._flush_req = 0
-        self._flush_done = 0
-        self._inflight = 0  # commits whose payload left the dirty set but is not written yet
-        self._arrays: dict[str, Any] = {}  # zarr arrays by path, opened once
-        self._last_set_time = 0.0
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
-
         if max_size is not None and int(max_size) != stored_max:
             self._grow(int(max_size))
         if self._schema is not None:
@@ -250,12 +217,101 @@ class ZarrStorage(LazyTensorStorage):
         if env is not None and not self.read_only:
             self.env = env
         if not self.read_only:
-            _lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
+            lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._schema is not None:
                 self._close_open_episodes()
                 self.flush()
 
-    # -- creation / reopening -------------------------------------------------
+    def _check_format(self, attrs: dict) -> None:
+        marker = attrs.get(FORMAT_MARKER)
+        if not isinstance(marker, dict) or "format_version" not in marker:
+            raise ValueError(f"{self.path!r} has a malformed {FORMAT_MARKER!r} attribute.")
+        if int(marker["format_version"]) > FORMAT_VERSION:
+            raise ValueError(
+                f"{self.path!r} was written in format version {marker['format_version']} by "
+                f"torchrl_robotmem {marker.get('library_version')}; this version reads format "
+                f"<= {FORMAT_VERSION}. Upgrade torchrl_robotmem to open it."
+            )
+
+    def _create_new(self, attrs: dict, max_size: int | None, chunk_rows: int | None, ndim: int) -> None:
+        if self.read_only:
+            raise ValueError(f"{self.path!r} is not a torchrl_robotmem store (no {FORMAT_MARKER!r} attribute).")
+        if attrs or any(True for _ in self._group.keys()):
+            raise ValueError(
+                f"{self.path!r} is a Zarr group that was not written by torchrl_robotmem "
+                f"(no {FORMAT_MARKER!r} attribute). Refusing to write into it."
+            )
+        if max_size is None:
+            raise ValueError(
+                f"No store exists at {self.path!r} yet: pass max_size to create one, e.g. "
+                f"ZarrStorage({self.path!r}, max_size=1_000_000)."
+            )
+        self._group.update_attributes(
+            {
+                FORMAT_MARKER: {
+                    "format_version": FORMAT_VERSION,
+                    "library_version": _library_version(),
+                    "torchrl_version": torchrl.__version__,
+                    "zarr_version": _backend.zarr.__version__,
+                },
+                "max_size": int(max_size),
+                "ndim": int(ndim),
+                "inner_shape": None,
+                "chunk_rows": int(chunk_rows) if chunk_rows is not None else None,
+                "schema": None,
+                "kind": None,
+                "len": 0,
+                "cursor": 0,
+                "last_cursor": -1,
+                "write_count": 0,
+                "episode_next": 0,
+                "runs": 0,
+                "env_names": [],
+                "journal": None,
+            }
+        )
+
+    def _sync_attrs(self, attrs: dict) -> None:
+        """Persistent bookkeeping, mirrored from the group attributes."""
+        self._chunk_rows = attrs.get("chunk_rows")
+        self._schema: dict[str, dict] | None = attrs.get("schema")
+        self._kind = DataKind.from_json(attrs.get("kind"))
+        inner = attrs.get("inner_shape")
+        self._inner_shape: tuple[int, ...] = tuple(inner) if inner is not None else ()
+        self._env_names: list[str] = list(attrs.get("env_names", []))
+        self._tagger = EpisodeTagger(int(attrs.get("episode_next", 0)))
+        self._runs = int(attrs.get("runs", 0))
+        self._write_count = int(attrs.get("write_count", 0))
+        self._writer_cursor = int(attrs.get("cursor", 0))
+        self._engine.committed_len = int(attrs.get("len", 0))
+        self._index_schema()
+
+    def _index_schema(self) -> None:
+        """``{key: (dtype, row shape)}`` without the tags, for the hot validation path."""
+        self._layout = PackedLayout(self._schema) if self._schema is not None else None
+        if self._schema is None:
+            self._schema_by_key = None
+            return
+        self._schema_by_key = {
+            _backend.path_to_key(p): (_backend.torch_dtype(spec["dtype"]), torch.Size(spec["shape"]))
+            for p, spec in self._schema.items()
+            if p not in TAG_KEYS
+        }
+
+    # -- shapes along the first dimension -------------------------------------------------
+
+    @property
+    def _inner_numel(self) -> int:
+        return math.prod(self._inner_shape) if self._inner_shape else 1
+
+    @property
+    def _max_dim0(self) -> int:
+        return -(-self.max_size // self._inner_numel)
+
+    def _dim0(self, n: int) -> int:
+        return -(-int(n) // self._inner_numel)
+
+    # -- writer handover within a process -------------------------------------------------
 
     def _claim_writer(self) -> ZarrStorage | None:
         """Takes the writer over from an earlier writable handle on the same store in this process.
@@ -275,7 +331,7 @@ class ZarrStorage(LazyTensorStorage):
         return other
 
     def _hand_over_writer(self) -> None:
-        with _lifecycle.critical():
+        with lifecycle.critical():
             self.flush()
             self._retired_by = "a newer writable ZarrStorage on the same store in this process"
             self._closed = True
@@ -291,79 +347,13 @@ class ZarrStorage(LazyTensorStorage):
             _OPEN_WRITERS[key] = weakref.ref(self)
         if self._local_dir is not None:
             try:
-                self._lock_file = _zarr.WriterLock(self._local_dir)
+                self._lock_file = _backend.WriterLock(self._local_dir)
             except RuntimeError:
                 return  # another process took it meanwhile: stay a snapshot
         self._retired_by = None
         self._closed = False
 
-    def _create_new(self, attrs: dict, max_size: int | None, chunk_rows: int | None) -> None:
-        if self.read_only:
-            raise ValueError(
-                f"{self.path!r} is not a torchrl_robotmem store (no {FORMAT_MARKER!r} attribute)."
-            )
-        if attrs or any(True for _ in self._group.keys()):
-            raise ValueError(
-                f"{self.path!r} is a Zarr group that was not written by torchrl_robotmem "
-                f"(no {FORMAT_MARKER!r} attribute). Refusing to write into it."
-            )
-        if max_size is None:
-            raise ValueError(
-                f"No store exists at {self.path!r} yet: pass max_size to create one, e.g. "
-                f"ZarrStorage({self.path!r}, max_size=1_000_000)."
-            )
-        self._commit_attrs(
-            {
-                FORMAT_MARKER: {
-                    "format_version": FORMAT_VERSION,
-                    "library_version": _library_version(),
-                    "torchrl_version": torchrl.__version__,
-                    "zarr_version": _zarr.zarr.__version__,
-                },
-                "max_size": int(max_size),
-                "chunk_rows": int(chunk_rows) if chunk_rows is not None else None,
-                "schema": None,
-                "len": 0,
-                "cursor": 0,
-                "last_cursor": -1,
-                "write_count": 0,
-                "episode_next": 0,
-                "runs": 0,
-                "env_names": [],
-                "journal": None,
-            }
-        )
-
-    def _commit_attrs(self, update: dict) -> None:
-        """Merges ``update`` into the group attributes in ONE atomic ``zarr.json`` write.
-
-        (``group.attrs.update`` rewrites the file once per key: a kill between two
-        of those writes would leave, say, a new ``len`` with an old ``write_count``.)
-        """
-        self._group.update_attributes(update)
-
-    def _sync_attrs(self, attrs: dict) -> None:
-        """Persistent bookkeeping, mirrored from the group attributes."""
-        self._chunk_rows = attrs.get("chunk_rows")
-        self._schema: dict[str, dict] | None = attrs.get("schema")
-        self._env_names: list[str] = list(attrs.get("env_names", []))
-        self._episode_next = int(attrs.get("episode_next", 0))
-        self._runs = int(attrs.get("runs", 0))
-        self._write_count = int(attrs.get("write_count", 0))
-        self._writer_cursor = int(attrs.get("cursor", 0))
-        self._committed_len = int(attrs.get("len", 0))
-        self._index_schema()
-
-    def _index_schema(self) -> None:
-        """``{tensordict key: (dtype, row shape)}`` without the tags, for the hot validation path."""
-        if self._schema is None:
-            self._schema_by_key = None
-            return
-        self._schema_by_key = {
-            _zarr.path_to_key(p): (_zarr.torch_dtype(spec["dtype"]), torch.Size(spec["shape"]))
-            for p, spec in self._schema.items()
-            if p not in TAG_KEYS
-        }
+    # -- loading -----------------------------------------------------------------------------
 
     def _grow(self, new_max: int) -> None:
         old = self.max_size
@@ -379,98 +369,104 @@ class ZarrStorage(LazyTensorStorage):
                 f"The store at {self.path!r} has wrapped around its max_size={old}; it cannot "
                 f"grow to {new_max} without reordering rows. Pass max_size={old} (or None)."
             )
+        self.max_size = new_max
         if self._schema is not None:
             for path in self._schema:
                 arr = self._group[path]
-                arr.resize((new_max, *arr.shape[1:]))
-        self._arrays.clear()
-        self.max_size = new_max
-        self._commit_attrs({"max_size": new_max})
+                arr.resize((self._max_dim0, *arr.shape[1:]))
+        self._engine.reset_arrays()
+        self._group.update_attributes({"max_size": new_max})
 
     def _load_rows(self, attrs: dict) -> None:
         journal = attrs.get("journal")
         if journal and not self.read_only:
-            attrs = self._replay_journal(journal)
+            attrs = CommitEngine.replay_journal(self._group, journal)
             self._sync_attrs(attrs)
         elif journal:  # a reader applies the pending journal in RAM only
             attrs = {**attrs, **journal["meta"]}
             self._sync_attrs(attrs)
         n = int(attrs.get("len", 0))
-        self._storage = self._allocate(self._schema)
+        n0 = self._dim0(n)
+        self._allocate()
         for path in self._schema:
-            if n:
-                self._storage.get(_zarr.path_to_key(path))[:n] = torch.from_numpy(
-                    np.ascontiguousarray(self._group[path][:n])
-                )
+            if n0:
+                self._column(path)[:n0] = torch.from_numpy(np.ascontiguousarray(self._group[path][:n0]))
         if journal and self.read_only:
-            for path, rows, values in self._journal_chunks(journal):
-                self._storage.get(_zarr.path_to_key(path))[rows] = torch.from_numpy(np.ascontiguousarray(values))
+            for path, rows, values in CommitEngine.journal_chunks(self._group, journal):
+                self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
         self.initialized = True
         self._len = n
         last = int(attrs.get("last_cursor", -1))
         if last >= 0:
             self._set_last_cursor(last)
-        if n:
+        if n and "episode" in self._schema:
             # Rows past the committed metadata may survive a crash (journal
             # replays): never hand out an id that a stored row already uses.
-            self._episode_next = max(self._episode_next, int(self._storage.get("episode")[:n].max()) + 1)
-            self._runs = max(self._runs, int(self._storage.get("run")[:n].max()) + 1)
+            self._tagger.next_id = max(self._tagger.next_id, int(self._storage.get("episode")[:n0].max()) + 1)
+            self._runs = max(self._runs, int(self._storage.get("run")[:n0].max()) + 1)
         self._bump_mutation_revision()
 
-    def _allocate(self, schema: dict[str, dict]) -> TensorDict:
-        td = TensorDict({}, batch_size=[self.max_size], device=self.device)
-        for path, spec in schema.items():
-            # empty, not zeros: the OS maps untouched pages lazily, so a 1M-row
-            # mirror costs nothing until rows arrive (rows past len are never read,
-            # and _copy_chunk zero-fills them before they reach the disk)
-            td.set(
-                _zarr.path_to_key(path),
-                torch.empty(
-                    (self.max_size, *spec["shape"]), dtype=_zarr.torch_dtype(spec["dtype"]), device=self.device
-                ),
-            )
-        return td
+    def _allocate(self) -> None:
+        """(Re)builds the packed RAM mirror for the current schema, keeping existing rows."""
+        old = self._storage if self.initialized else None
+        self._packed = self._layout.allocate((self._max_dim0, *self._inner_shape), self.device)
+        self._storage = self._layout.views(self._packed)
+        self.__dict__.pop("_total_shape_value", None)  # TorchRL caches the storage shape
+        if old is not None:
+            n0 = self._dim0(len(self))
+            for path in self._schema:
+                key = _backend.path_to_key(path)
+                col = old.get(key, None)
+                if col is not None:
+                    self._storage.get(key)[:n0] = col[:n0]
+                else:
+                    self._storage.get(key)[:n0] = 0
+
+    def _column(self, path: str) -> torch.Tensor:
+        return self._storage.get(_backend.path_to_key(path))
+
+    # -- episodes ----------------------------------------------------------------------------
 
     def _close_episode_at(self, row: int) -> None:
         """Ends the open episode at ``row`` (done/truncated), for writers that learn of a boundary late."""
-        with self._cv:
-            self._open_traj.pop(-1, None)
+        with self._engine.cv:
+            self._tagger.close_stream()
         self._mark_truncated(torch.tensor([row]))
-        self._kick()
+        self._engine.kick()
 
     def _mark_truncated(self, rows: torch.Tensor) -> None:
-        """Sets ``("next", "done")`` and ``("next", "truncated")`` on ``rows`` (RAM, then disk)."""
-        with self._cv:
-            self._storage.get(_DONE_KEY)[rows] = True
+        """Sets ``("next", "done")`` and ``("next", "truncated")`` on flat ``rows`` (RAM, then disk)."""
+        with lifecycle.critical(), self._engine.cv:
+            done = self._storage.get(_DONE_KEY)
+            flat = done.reshape(-1, *done.shape[self.ndim:]) if self.ndim > 1 else done
+            flat[rows] = True
             if _TRUNCATED_KEY in self._storage.keys(True, True):
-                self._storage.get(_TRUNCATED_KEY)[rows] = True
-            self._mark_dirty(rows)
+                trunc = self._storage.get(_TRUNCATED_KEY)
+                (trunc.reshape(-1, *trunc.shape[self.ndim:]) if self.ndim > 1 else trunc)[rows] = True
+            self._engine.mark_dirty(torch.div(rows, self._inner_numel, rounding_mode="floor"), self._chunk_rows)
         self._bump_mutation_revision()
 
     def _close_open_episodes(self) -> None:
-        """Marks the last row of every episode the previous run left open as done/truncated.
-
-        A run that stopped or crashed mid-episode would otherwise merge that
-        episode with the next run's first one (HER relabels within episodes).
-        """
+        """Marks the last row of every episode the previous run left open as done/truncated."""
         n = len(self)
-        if n == 0 or _DONE_KEY not in self._storage.keys(True, True):
+        if n == 0 or _DONE_KEY not in self._storage.keys(True, True) or "episode" not in self._schema:
             return
-        run = self._storage.get("run")[:n]
-        rows = (run == run.max()).nonzero().squeeze(-1)
-        # write order: a full ring starts at the writer's cursor
-        order = (rows - self._writer_cursor) % self.max_size if self._is_full else rows
-        episodes = self._storage.get("episode")[rows]
-        _, inv = torch.unique(episodes, return_inverse=True)
-        last = torch.full((int(inv.max()) + 1,), -1, dtype=torch.long).scatter_reduce(
-            0, inv, order, reduce="amax"
-        )
-        last_rows = (last + self._writer_cursor) % self.max_size if self._is_full else last
-        done = self._storage.get(_DONE_KEY)[last_rows].reshape(len(last_rows), -1).any(-1)
-        if not done.all():
-            self._mark_truncated(last_rows[~done])
+        flat = self._flat_columns(("run", "episode", _DONE_KEY), n)
+        done = flat[_DONE_KEY].reshape(n, -1).any(-1)
+        cursor = self._writer_cursor * self._inner_numel
+        rows = open_episode_ends(flat["run"], flat["episode"], done, cursor=cursor, full=self._is_full)
+        if rows.numel():
+            self._mark_truncated(rows)
 
-    # -- properties -----------------------------------------------------------
+    def _flat_columns(self, keys, n: int) -> dict:
+        out = {}
+        n0 = self._dim0(n)
+        for key in keys:
+            col = self._storage.get(key)[:n0]
+            out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
+        return out
+
+    # -- properties --------------------------------------------------------------------------
 
     @property
     def env_names(self) -> tuple[str, ...]:
@@ -480,11 +476,11 @@ class ZarrStorage(LazyTensorStorage):
     @property
     def env(self) -> str | None:
         """The environment name rows written from now on are tagged with."""
-        return None if self._env_code == _UNKNOWN_ENV else self._env_names[self._env_code]
+        return None if self._env_code == UNKNOWN_ENV else self._env_names[self._env_code]
 
     @env.setter
     def env(self, name: str | None) -> None:
-        self._env_code = _UNKNOWN_ENV if name is None else self.env_code(name, create=True)
+        self._env_code = UNKNOWN_ENV if name is None else self.env_code(name, create=True)
 
     def env_code(self, name: str, *, create: bool = False) -> int:
         """The integer code of an environment name.
@@ -503,14 +499,33 @@ class ZarrStorage(LazyTensorStorage):
             raise ValueError(f"Unknown env {name!r}; this store knows {self._env_names}.")
         if self.read_only:
             raise RuntimeError(f"Cannot register env {name!r} in a store opened read_only.")
-        with self._cv:
+        with self._engine.cv:
             self._env_names.append(name)
-            self._meta_dirty = True
+            self._engine.mark_meta_dirty()
         return len(self._env_names) - 1
 
     @property
     def chunk_rows(self) -> int | None:
         return self._chunk_rows
+
+    # The commit engine's state, under the names the crash tests inspect.
+    @property
+    def _dirty(self) -> dict[int, int]:
+        return self._engine.dirty
+
+    @property
+    def _inflight(self) -> int:
+        return self._engine.inflight
+
+    @property
+    def _error(self) -> BaseException | None:
+        return self._engine.error
+
+    @property
+    def _committed_len(self) -> int:
+        return self._engine.committed_len
+
+    # -- the buffer's writer -------------------------------------------------------------------
 
     @property
     def checkpointer(self):
@@ -527,50 +542,42 @@ class ZarrStorage(LazyTensorStorage):
             self._restore_writers()
 
     def _restore_writers(self, force: bool = False) -> None:
-        for ent in list(self._attached_entities):
-            writer = getattr(ent, "_writer", None)
-            if writer is None or getattr(writer, "_storage", None) is not self:
-                continue
-            if writer in self._restored_writers and not force:
-                continue
-            if hasattr(writer, "_cursor"):
-                writer._cursor = self._writer_cursor
-            if hasattr(writer, "_write_count"):
-                writer._write_count = self._write_count
-            self._restored_writers.add(writer)
+        writer_sync.restore_writers(self, self._writer_cursor, self._write_count, self._restored_writers, force=force)
 
-    # -- writes ---------------------------------------------------------------
+    # -- writes ----------------------------------------------------------------------------------
 
     def set(self, cursor, data, *, set_cursor: bool = True):
         try:
             self._check_writable()
-            data, n = self._prepare(cursor, data, set_cursor)
+            data, n, new_paths = self._prepare(cursor, data, set_cursor)
         except Exception:
             if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
-                self._rollback_writers(cursor)
+                rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
+                writer_sync.rollback_writers(self, int(rows[0]) if len(rows) else 0, len(rows),
+                                             self._max_dim0 if self.initialized else self.max_size)
             raise
         # A signal arriving from here on is handled once the write is complete
         # (a flush must never see RAM rows that are not marked dirty yet).
-        with _lifecycle.critical():
+        with lifecycle.critical():
             if not self.initialized:
-                self._init_schema(data if _is_int_cursor(cursor) else data[0])
-            rows = dirty = _cursor_rows(cursor, self.max_size)
+                self._init_schema(data, _is_int_cursor(cursor))
+            elif new_paths:
+                self._evolve_schema(data, new_paths, _is_int_cursor(cursor))
+            rows = dirty = _cursor_rows(cursor, self._max_dim0)
             if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
                 cursor = dirty = slice(int(rows[0]), int(rows[-1]) + 1)  # a view copy: ~2x an index_put
-            with self._cv:
+            with self._engine.cv:
                 super().set(cursor, data, set_cursor=set_cursor)
                 if set_cursor:
                     self._write_count += n
-                    self._writer_cursor = (int(rows[-1]) + 1) % self.max_size
-                self._mark_dirty(dirty)
-                self._last_set_time = time.monotonic()
-            self._kick()
+                    self._writer_cursor = (int(rows[-1]) + 1) % self._max_dim0
+                self._engine.mark_dirty(dirty, self._chunk_rows)
+            self._engine.kick()
 
     def _check_writable(self) -> None:
         if self.read_only:
             raise RuntimeError(
-                f"This ZarrStorage ({self.path!r}) was opened read_only; open it without "
-                f"read_only=True to write."
+                f"This ZarrStorage ({self.path!r}) was opened read_only; open it without read_only=True to write."
             )
         if self._retired_by is not None:
             raise RuntimeError(
@@ -579,61 +586,90 @@ class ZarrStorage(LazyTensorStorage):
             )
         if self._closed:
             raise RuntimeError(
-                f"This ZarrStorage ({self.path!r}) is closed; open ZarrStorage({self.path!r}) "
-                f"again to keep writing."
+                f"This ZarrStorage ({self.path!r}) is closed; open ZarrStorage({self.path!r}) again to keep writing."
             )
-        self._raise_writer_error()
+        self._engine.raise_error()
 
-    def _prepare(self, cursor, data, set_cursor: bool) -> tuple[TensorDictBase, int]:
-        """Validates ``data`` against the schema and adds the tag columns (no side effects)."""
-        if isinstance(data, list):
-            if not data or not all(is_tensor_collection(d) for d in data):
-                raise TypeError("ZarrStorage.set expects a TensorDict or a list of TensorDicts.")
-            data = torch.stack(data, 0)
-        if not is_tensor_collection(data):
-            raise TypeError(
-                f"ZarrStorage stores TensorDicts; got {type(data).__name__}. Use a "
-                f"TensorDictReplayBuffer, or wrap tensors in a TensorDict."
-            )
+    def _prepare(self, cursor, data, set_cursor: bool) -> tuple[TensorDictBase, int, list]:
+        """Validates ``data`` and adds the tag columns (no side effects).
+
+        Returns the TensorDict to store, the number of transitions and the paths
+        of keys the store does not hold yet.
+        """
         single = _is_int_cursor(cursor)
-        expected_dims = 0 if single else 1
-        if data.batch_dims != expected_dims:
-            raise ValueError(
-                f"ZarrStorage stores flat transitions (batch_size [N]); got a TensorDict with "
-                f"batch_size {list(data.batch_size)}. Flatten it first: data.reshape(-1) (with a "
-                f"Collector: postproc=lambda td: td.reshape(-1))."
+        if isinstance(data, list):
+            if not data:
+                raise ValueError("Cannot write an empty TensorDict.")
+            data = torch.stack(data, 0) if all(is_tensor_collection(d) for d in data) else _stack_trees(data)
+        kind = DataKind.of(data)
+        if self._schema is not None and not kind.same_as(self._kind):
+            raise TypeError(
+                f"The store at {self.path!r} holds {self._kind.kind} data; got {kind.kind}. Every "
+                f"write to one store must be of the same kind."
             )
-        data = data.unsqueeze(0) if single else data
-        n = data.shape[0]
-        if n == 0:
-            raise ValueError("Cannot write an empty TensorDict.")
-        data = data.copy()  # shallow: tags must not leak into the caller's TensorDict
-        for key in _DROPPED_KEYS:
-            data.pop(key, None)
-        env = self._env_column(data, n)
-        if set_cursor:
-            episode = run = None  # drawn once validation passed
+        expected_dims = self.ndim - (1 if single else 0)
+        td = kind.to_tensordict(data, expected_dims)
+        if isinstance(td, TensorDictBase) and td.batch_dims < expected_dims:
+            raise ValueError(
+                f"ZarrStorage(ndim={self.ndim}) expects data with at least {expected_dims} batch "
+                f"dimension(s); got batch_size {list(td.batch_size)}."
+            )
+        if td.batch_dims > expected_dims:
+            if kind.kind == "tensordict" and self.ndim == 1:
+                raise ValueError(
+                    f"ZarrStorage stores flat transitions (batch_size [N]); got a TensorDict with "
+                    f"batch_size {list(td.batch_size)}. Flatten it first: data.reshape(-1) (with a "
+                    f"Collector: postproc=lambda td: td.reshape(-1)), or create the store with ndim="
+                    f"{td.batch_dims} to keep that layout."
+                )
+            td.batch_size = td.batch_size[:expected_dims]
+        if not isinstance(td, TensorDict) or td.is_locked:
+            td = td.to_tensordict() if not isinstance(td, TensorDict) else td.copy()
         else:
-            rows = _cursor_rows(cursor, self.max_size)
-            if not self.initialized or (rows >= len(self)).any():
+            td = td.copy()  # shallow: tags must not leak into the caller's TensorDict
+        if single:
+            td = td.unsqueeze(0)
+        inner = tuple(td.batch_size[1:])
+        if self._schema is not None and self.ndim > 1 and inner != self._inner_shape:
+            raise ValueError(
+                f"ZarrStorage(ndim={self.ndim}) at {self.path!r} holds items of shape "
+                f"{list(self._inner_shape)}; got {list(inner)}."
+            )
+        n0 = td.shape[0]
+        if n0 == 0:
+            raise ValueError("Cannot write an empty TensorDict.")
+        n = n0 * math.prod(inner)
+        for key in _DROPPED_KEYS:
+            td.pop(key, None)
+        tags = kind.tag_columns
+        env = self._env_column(td, td.batch_size) if tags else None
+        if tags and not set_cursor:
+            rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
+            if not self.initialized or (rows >= self._len_along_dim0).any():
                 raise ValueError(
                     "Writing rows that were never appended (set_cursor=False past len) is not "
                     "supported by ZarrStorage: extend the buffer instead."
                 )
-            episode = data.pop("episode", self._storage.get("episode")[rows])
-            run = data.pop("run", self._storage.get("run")[rows])
+            episode = td.pop("episode", None)
+            run = td.pop("run", None)
+            if episode is None and "episode" in (self._schema or {}):
+                episode = self._storage.get("episode")[rows]
+                run = self._storage.get("run")[rows]
         for key in TAG_KEYS:
-            data.pop(key, None)
-        self._validate(data)
-        if set_cursor:  # only now, once nothing can fail, advance the episode counters
-            episode = self._episode_column(data, n)
-            run = torch.full((n,), self._current_run(), dtype=torch.long)
-        data.set("episode", torch.as_tensor(episode, dtype=torch.long).reshape(n))
-        data.set("run", torch.as_tensor(run, dtype=torch.long).reshape(n))
-        data.set("env", env)
+            td.pop(key, None)
+        new_paths = self._validate(td, single)
+        if self._schema is None:
+            self._kind = kind  # recorded with the schema at the first write
+        if tags:
+            if set_cursor:  # only now, once nothing can fail, draw the episode ids
+                episode = self._episode_column(td, n).reshape(td.batch_size)
+                run = torch.full(td.batch_size, self._current_run(), dtype=torch.long)
+            td.set("episode", torch.as_tensor(episode, dtype=torch.long).reshape(td.batch_size))
+            td.set("run", torch.as_tensor(run, dtype=torch.long).reshape(td.batch_size))
+            td.set("env", env)
         if single:
-            data = data[0]
-        return data, n
+            td = td[0]
+        return td, n, new_paths
 
     def check_schema(self, data: TensorDictBase) -> None:
         """Raises, naming the key, unless ``data`` (batch ``[N]``) could be written to this store.
@@ -641,68 +677,53 @@ class ZarrStorage(LazyTensorStorage):
         Nothing is written. The tag columns (``episode``, ``run``, ``env``) are
         ignored; a store with no rows yet accepts any supported dtypes.
         """
-        data = data.exclude(*TAG_KEYS, *_DROPPED_KEYS)
-        self._validate(data)
+        self._validate(data.exclude(*TAG_KEYS, *_DROPPED_KEYS), False)
 
-    def _validate(self, data: TensorDictBase) -> None:
-        """Raises, naming the key, unless ``data`` (without tags) matches the schema."""
+    def _validate(self, data: TensorDictBase, single: bool) -> list[str]:
+        """Raises, naming the key, on a dtype / shape change; returns the paths of new keys."""
         fast = self._schema_by_key
         if fast is not None:  # hot path: one dict lookup and two comparisons per leaf
             seen = 0
+            dims = self.ndim
             for key, value in data.items(include_nested=True, leaves_only=True):
                 spec = fast.get(key)
-                if spec is None or value.dtype != spec[0] or value.shape[1:] != spec[1]:
+                if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
                     break
                 seen += 1
             else:
                 if seen == len(fast):
-                    return
-        leaves = {}
-        for key, value in data.items(include_nested=True, leaves_only=True):
-            path = _zarr.key_to_path(key)
-            if not isinstance(value, torch.Tensor):
-                raise TypeError(
-                    f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only."
-                )
-            leaves[path] = value
+                    return []
         if self._schema is None:
-            for path, value in leaves.items():
-                _zarr.torch_dtype_name(value.dtype)
-            return
+            for key, value in data.items(include_nested=True, leaves_only=True):
+                if not isinstance(value, torch.Tensor):
+                    raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
+                _backend.torch_dtype_name(value.dtype)
+                _backend.key_to_path(key)
+            return []
         schema = {p: spec for p, spec in self._schema.items() if p not in TAG_KEYS}
-        missing = sorted(set(schema) - set(leaves))
-        extra = sorted(set(leaves) - set(schema))
-        if missing or extra:
-            msg = [f"The TensorDict does not match the schema of the store at {self.path!r}:"]
-            if missing:
-                msg.append(f"missing keys {[_zarr.path_to_key(p) for p in missing]}")
-            if extra:
-                msg.append(f"unexpected keys {[_zarr.path_to_key(p) for p in extra]}")
-            msg.append("Every write must carry the same keys as the first one.")
-            raise KeyError(" ".join(msg))
-        for path, value in leaves.items():
-            spec = schema[path]
-            dtype = _zarr.torch_dtype_name(value.dtype)
-            shape = list(value.shape[1:])
-            if dtype != spec["dtype"] or shape != spec["shape"]:
-                raise ValueError(
-                    f"Key {_zarr.path_to_key(path)!r}: got dtype {dtype} and per-row shape "
-                    f"{shape}, but the store at {self.path!r} holds dtype {spec['dtype']} and "
-                    f"shape {spec['shape']}. Cast or reshape the data before writing."
-                )
+        new, missing = check_against(schema, data, self.ndim, repr(self.path))
+        if missing:
+            raise KeyError(
+                f"The TensorDict does not match the schema of the store at {self.path!r}: missing keys "
+                f"{[_backend.path_to_key(p) for p in missing]}. Every write must carry the keys the "
+                f"store holds (new keys may be added)."
+            )
+        for path in new:
+            _backend.key_to_path(_backend.path_to_key(path))
+        return new
 
-    def _env_column(self, data: TensorDictBase, n: int) -> torch.Tensor:
+    def _env_column(self, data: TensorDictBase, batch: torch.Size) -> torch.Tensor:
         env = data.get("env", None)
         if env is None:
-            return torch.full((n,), self._env_code, dtype=torch.long)
-        if isinstance(env, (NonTensorData, NonTensorStack)):
-            names = env.tolist() if isinstance(env, NonTensorStack) else [env.data] * n
-            return torch.tensor([self.env_code(str(x), create=True) for x in names], dtype=torch.long)
+            return torch.full(batch, self._env_code, dtype=torch.long)
+        names = env_names_of(env, batch.numel())
+        if names is not None:
+            return torch.tensor([self.env_code(x, create=True) for x in names], dtype=torch.long).reshape(batch)
         env = torch.as_tensor(env)
         if env.dtype.is_floating_point or env.dtype == torch.bool:
             raise ValueError(f"Key 'env' must hold integer env codes or names, got dtype {env.dtype}.")
-        env = env.reshape(n).long()
-        bad = (env < _UNKNOWN_ENV) | (env >= len(self._env_names))
+        env = env.reshape(batch).long()
+        bad = (env < UNKNOWN_ENV) | (env >= len(self._env_names))
         if bad.any():
             raise ValueError(
                 f"Key 'env' holds codes {env[bad].unique().tolist()} unknown to this store "
@@ -714,7 +735,7 @@ class ZarrStorage(LazyTensorStorage):
         if self._run is None:
             self._run = self._runs
             self._runs += 1
-            self._meta_dirty = True
+            self._engine.mark_meta_dirty()
         return self._run
 
     def _episode_column(self, data: TensorDictBase, n: int) -> torch.Tensor:
@@ -722,227 +743,115 @@ class ZarrStorage(LazyTensorStorage):
         done = data.get(_DONE_KEY, None)
         done = np.zeros(n, dtype=bool) if done is None else done.reshape(n, -1).any(-1).cpu().numpy()
         traj = data.get(_TRAJ_KEY, None)
-        if traj is not None and traj.numel() == n:
-            keys = traj.reshape(n).long().cpu().numpy()
-        else:  # one stream of episodes split at done flags: keys -1, -2, ...
-            keys = -1 - (np.cumsum(done) - done)
-        # numpy, not torch: these arrays are tiny and this runs on every extend
-        uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
-        last = n - 1 - np.unique(keys[::-1], return_index=True)[1]
-        open_traj = self._open_traj
-        for k in [k for k in open_traj if k < 0]:  # a done-split stream only continues its -1
-            if k != -1:
-                open_traj.pop(k)
-        ids = np.empty(len(uniq), dtype=np.int64)
-        next_id = self._episode_next
-        for j in np.argsort(first):  # new ids in order of first appearance
-            key = int(uniq[j])
-            if key in open_traj:
-                ids[j] = open_traj[key]
-            else:
-                ids[j] = next_id
-                next_id += 1
-        open_traj.pop(-1, None)
-        for j in np.argsort(first):  # in order of appearance: the batch's last segment wins
-            key = int(uniq[j])
-            if done[last[j]]:
-                open_traj.pop(key, None)
-            elif key >= 0 or last[j] == n - 1:
-                open_traj[-1 if key < 0 else key] = int(ids[j])
-        self._episode_next = next_id
-        return torch.from_numpy(ids[inv.reshape(-1)])
+        traj = traj.reshape(n).long().cpu().numpy() if traj is not None and traj.numel() == n else None
+        if self.ndim == 1:
+            return self._tagger.assign(done, traj)
+        # [items, time...] layouts: each item is its own stream; nothing continues across writes
+        if traj is None:
+            per_item = done.reshape(data.shape[0], -1)
+            seg = np.cumsum(per_item, 1) - per_item
+            traj = (np.arange(per_item.shape[0])[:, None] * (per_item.shape[1] + 1) + seg).reshape(-1)
+        ids = self._tagger.assign(done, traj, continue_open=False)
+        self._tagger.reset()
+        return ids
 
-    def _rollback_writers(self, cursor) -> None:
-        """Undoes the cursor move RoundRobinWriter made before calling a failing ``set``."""
-        rows = _cursor_rows(cursor, self.max_size)
-        n = len(rows)
-        if n == 0:  # an empty write did not move the cursor
-            return
-        for ent in list(self._attached_entities):
-            writer = getattr(ent, "_writer", None)
-            if writer is None or getattr(writer, "_storage", None) is not self:
-                continue
-            if hasattr(writer, "_cursor") and writer._cursor == (int(rows[0]) + n) % self.max_size:
-                writer._cursor = int(rows[0])
-                writer._write_count = writer._write_count - n
-
-    def _init_schema(self, row: TensorDictBase) -> None:
-        schema = {}
-        row_bytes = 0
-        for key, value in row.items(include_nested=True, leaves_only=True):
-            path = _zarr.key_to_path(key)
-            schema[path] = {"dtype": _zarr.torch_dtype_name(value.dtype), "shape": list(value.shape)}
-            row_bytes += value.numel() * value.element_size()
+    def _init_schema(self, data: TensorDictBase, single: bool) -> None:
+        row = data if single else data[0]
+        schema = spec_of(row.reshape(-1)[0] if row.batch_dims else row)
+        self._inner_shape = tuple(row.batch_size)
+        row_bytes = sum(
+            _backend.numpy_dtype(_backend.torch_dtype(s["dtype"])).itemsize * math.prod(s["shape"]) for s in schema.values()
+        ) * self._inner_numel
         if self._chunk_rows is None:
             # ~4 MiB of rows per chunk group: large enough for fast sequential I/O,
             # small enough that a commit of a partial chunk stays cheap.
             target = max(1024, min(65536, 2 ** round(math.log2(max(1, (4 << 20) // max(row_bytes, 1))))))
-            self._chunk_rows = min(target, self.max_size)
+            self._chunk_rows = min(target, self._max_dim0)
+        self.max_size = self._max_dim0 * self._inner_numel  # as TorchRL rounds it for ndim > 1
+        self._create_arrays(schema)
+        self._schema = schema
+        self._index_schema()
+        self._allocate()
+        self.initialized = True
+        # Schema first: a store whose arrays exist but whose schema is unknown would not reopen.
+        self._group.update_attributes(
+            {
+                "schema": schema,
+                "chunk_rows": self._chunk_rows,
+                "inner_shape": list(self._inner_shape),
+                "kind": self._kind.to_json(),
+                "max_size": self.max_size,
+            }
+        )
+
+    def _create_arrays(self, schema: dict[str, dict]) -> None:
         for path, spec in schema.items():
-            dtype = _zarr.torch_dtype(spec["dtype"])
+            dtype = _backend.torch_dtype(spec["dtype"])
+            shape = (self._max_dim0, *self._inner_shape, *spec["shape"])
             self._group.create_array(
                 path,
-                shape=(self.max_size, *spec["shape"]),
-                chunks=(self._chunk_rows, *spec["shape"]),
-                dtype=_zarr.numpy_dtype(dtype),
-                compressors=_zarr.make_compressors(
-                    self._compressor, self._compression_level, _zarr.numpy_dtype(dtype).itemsize
+                shape=shape,
+                chunks=(self._chunk_rows, *shape[1:]),
+                dtype=_backend.numpy_dtype(dtype),
+                compressors=_backend.make_compressors(
+                    self._compressor, self._compression_level, _backend.numpy_dtype(dtype).itemsize
                 ),
                 fill_value=0,
                 overwrite=True,
             )
-        self._schema = schema
-        self._index_schema()
-        self._storage = self._allocate(schema)
-        self.initialized = True
-        # Schema first: a store whose arrays exist but whose schema is unknown
-        # would not reopen.
-        self._commit_attrs({"schema": schema, "chunk_rows": self._chunk_rows})
 
-    def _init(self, data) -> None:  # LazyTensorStorage hook; allocation happened in _init_schema
+    def _evolve_schema(self, data: TensorDictBase, new_paths: list[str], single: bool) -> None:
+        """Adds columns for keys the store did not hold yet (older rows read zeros)."""
+        row = data if single else data[0]
+        if self.ndim > 1:
+            row = row.reshape(-1)[0]
+        added = {p: s for p, s in spec_of(row.select(*[_backend.path_to_key(p) for p in new_paths])).items()}
+        self.flush()  # committed rows first: the new arrays start from a clean state
+        self._create_arrays(added)
+        self._schema = {**self._schema, **added}
+        self._index_schema()
+        with self._engine.cv:
+            self._allocate()
+        self._group.update_attributes({"schema": self._schema})
+        self._bump_mutation_revision()
+
+    # Kept for LazyTensorStorage: allocation happens in _init_schema.
+    def _init(self, data) -> None:
         if not self.initialized:
-            self._init_schema(data)
+            self._init_schema(data, True)
 
     def _empty(self) -> None:
         self._check_writable()
-        with _lifecycle.critical(), self._cv:
+        with lifecycle.critical(), self._engine.cv:
             super()._empty()
             self._writer_cursor = 0
             self._write_count = 0  # as TorchRL's writer restarts its count
-            self._open_traj = {}
-            self._meta_dirty = True
+            self._tagger.reset()
+            self._engine.mark_meta_dirty()
         self.flush()
 
-    # -- background commit ----------------------------------------------------
+    # -- reads ---------------------------------------------------------------------------------
 
-    def _mark_dirty(self, rows: torch.Tensor | slice) -> None:
-        """Records the chunks ``rows`` touched (a slice: contiguous rows, as ``set`` found them)."""
-        if isinstance(rows, slice):
-            for c in range(rows.start // self._chunk_rows, (rows.stop - 1) // self._chunk_rows + 1):
-                lo = max(rows.start, c * self._chunk_rows)
-                self._dirty[c] = min(self._dirty.get(c, lo), lo)
-        else:
-            chunks = torch.div(rows, self._chunk_rows, rounding_mode="floor")
-            for c, r in zip(chunks.tolist(), rows.tolist()):
-                self._dirty[c] = min(self._dirty.get(c, r), r)
-        if self._first_dirty_time is None:
-            self._first_dirty_time = time.monotonic()
-        self._meta_dirty = True
-
-    def _kick(self) -> None:
-        if not self._background:
-            self._commit(everything=True)
-            return
-        with self._cv:
-            if self._thread is None:
-                self._thread = threading.Thread(
-                    target=self._writer_loop, name=f"ZarrStorage-writer({self.path})", daemon=True
-                )
-                self._thread.start()
-            self._cv.notify_all()
-
-    def _complete_chunks(self) -> list[int]:
-        n = len(self)
-        return [c for c in self._dirty if min((c + 1) * self._chunk_rows, self.max_size) <= n]
-
-    def _writer_loop(self) -> None:
-        while True:
-            with self._cv:
-                while True:
-                    if self._error is not None:
-                        self._thread = None
-                        return
-                    flush = self._flush_req > self._flush_done
-                    pending = bool(self._dirty) or self._meta_dirty
-                    timer = pending and (
-                        self._first_dirty_time is None
-                        or time.monotonic() - self._first_dirty_time >= self._commit_interval
-                    )
-                    if flush or timer:
-                        break
-                    if self._complete_chunks():
-                        # Complete chunks wait for a pause in the writes (the
-                        # commit_interval timer still bounds the wait): compressing
-                        # them holds the GIL in bursts that would slow extend().
-                        idle = time.monotonic() - self._last_set_time
-                        if idle >= _IDLE_GAP:
-                            break
-                        self._cv.wait(_IDLE_GAP - idle)
-                        continue
-                    if not pending:
-                        self._thread = None  # idle: let the storage be collected
-                        return
-                    self._cv.wait(
-                        max(0.0, self._commit_interval - (time.monotonic() - self._first_dirty_time))
-                    )
-            self._commit(everything=flush or timer)
-
-    def _commit(self, *, everything: bool) -> None:
-        """Writes dirty chunks (all of them, or only complete ones), then the metadata."""
-        with self._cv:
-            target = self._flush_req
-            # Overwriting committed rows (a wrapping ring) commits everything with
-            # its metadata, through the journal: rows on disk never lead the
-            # metadata, even by a chunk.
-            overwrite = any(lo < self._committed_len for lo in self._dirty.values())
-            everything = everything or overwrite
-            chunks = sorted(self._dirty) if everything else sorted(self._complete_chunks())
-            payload = {c: self._copy_chunk(c) for c in chunks}
-            for c in chunks:
-                del self._dirty[c]
-            meta = self._meta_snapshot() if everything else None
-            if everything:
-                self._meta_dirty = False
-                self._first_dirty_time = None
-            self._inflight += 1
-        try:
-            if overwrite:
-                self._write_journal(payload, meta)
-            self._write_chunks(payload)
-            if meta is not None or overwrite:
-                update = dict(meta or {})
-                if overwrite:
-                    update["journal"] = None
-                self._commit_attrs(update)
-        except BaseException as err:  # surfaced to the foreground on its next call
-            with self._cv:
-                self._inflight -= 1
-                self._error = err
-                self._flush_done = target
-                self._cv.notify_all()
-            if not self._background:
-                raise
-            return
-        with self._cv:
-            self._inflight -= 1
-            if meta is not None:
-                self._committed_len = meta["len"]
-                self._flush_done = max(self._flush_done, target)
-            self._cv.notify_all()
-
-    def _write_chunks(self, payload: dict[int, dict[str, np.ndarray]], prefix: str = "") -> None:
-        """Writes chunks of every array in one event-loop round trip (about 1.4x a loop of writes)."""
-        writes = []
-        for c, arrays in payload.items():
-            lo = c * self._chunk_rows
-            for path, values in arrays.items():
-                arr = self._arrays.get(prefix + path)
-                if arr is None:
-                    arr = self._arrays[prefix + path] = self._group[prefix + path]
-                writes.append(arr._async_array.setitem(slice(lo, lo + len(values)), values))
-
-        async def _all():
-            await asyncio.gather(*writes)
-
-        zarr_sync(_all())
+    def get(self, index):
+        """Rows at ``index``: one gather of whole packed rows, then views per key."""
+        if not self.initialized:
+            raise RuntimeError("Cannot get elements out of a non-initialized storage.")
+        if isinstance(index, str) or (isinstance(index, tuple) and index and all(isinstance(i, str) for i in index)):
+            rows = self._storage if self._is_full else self._storage[: self._len_along_dim0]
+            return rows[index]  # a column, as LazyTensorStorage gives it
+        if isinstance(index, list):
+            index = torch.as_tensor(index)
+        packed = self._packed if self._is_full else self._packed[: self._len_along_dim0]
+        return self._kind.from_tensordict(self._layout.views(packed[index]))
 
     def _copy_chunk(self, c: int) -> dict[str, np.ndarray]:
+        """The rows of chunk ``c`` of every array, zero-filled past ``len`` (for the commit engine)."""
         lo = c * self._chunk_rows
-        hi = min(lo + self._chunk_rows, self.max_size)
-        valid = max(0, min(hi, len(self)) - lo)
+        hi = min(lo + self._chunk_rows, self._max_dim0)
+        valid = max(0, min(hi, self._len_along_dim0) - lo)
         out = {}
         for path in self._schema:
-            rows = self._storage.get(_zarr.path_to_key(path))[lo:hi].cpu().numpy()
+            rows = self._column(path)[lo:hi].cpu().numpy()
             chunk = np.zeros_like(rows) if valid < hi - lo else np.empty_like(rows)
             chunk[:valid] = rows[:valid]
             out[path] = chunk
@@ -955,86 +864,37 @@ class ZarrStorage(LazyTensorStorage):
             "cursor": self._writer_cursor,
             "last_cursor": -1 if last is None else int(last),
             "write_count": self._write_count,
-            "episode_next": self._episode_next,
+            "episode_next": self._tagger.next_id,
             "runs": self._runs,
             "env_names": list(self._env_names),
             "env": self.env,
         }
 
-    def _write_journal(self, payload: dict[int, dict[str, np.ndarray]], meta: dict) -> None:
-        """Redo log for chunks that overwrite committed rows (ring wrap-around).
+    @property
+    def _last_cursor_index(self) -> int | None:
+        last = self._last_cursor
+        if last is None:
+            return None
+        if isinstance(last, torch.Tensor):
+            return int(last.reshape(-1)[-1]) if last.numel() else None
+        if isinstance(last, slice):
+            return last.stop - 1
+        if isinstance(last, range):
+            return last[-1] if len(last) else None
+        if isinstance(last, (list, tuple)):
+            return int(last[-1]) if last else None
+        return int(last)
 
-        Chunk files are replaced atomically one array at a time; without this a
-        crash between two arrays would leave rows whose columns disagree.
-        """
-        chunks = sorted(payload)
-        for path, spec in self._schema.items():
-            jpath = f"_journal/{path}"
-            if jpath not in self._arrays or self._arrays[jpath].shape[0] != self.max_size:
-                # created once, as large as the store: each chunk goes to its own offset
-                self._arrays[jpath] = self._group.create_array(
-                    jpath,
-                    shape=(self.max_size, *spec["shape"]),
-                    chunks=(self._chunk_rows, *spec["shape"]),
-                    dtype=_zarr.numpy_dtype(_zarr.torch_dtype(spec["dtype"])),
-                    fill_value=0,
-                    overwrite=True,
-                )
-        self._write_chunks({c: payload[c] for c in chunks}, prefix="_journal/")
-        # the journal is complete once this record (with the state it leads to) is committed
-        self._commit_attrs({"journal": {"chunks": chunks, "meta": meta}})
-
-    def _journal_chunks(self, journal: dict):
-        """Yields ``(path, row_slice, values)`` for every journalled chunk."""
-        rows = int(self._group.attrs["chunk_rows"])
-        for path in self._group.attrs["schema"]:
-            src = self._group[f"_journal/{path}"]
-            size = self._group[path].shape[0]
-            for c in journal["chunks"]:
-                lo, hi = c * rows, min(c * rows + rows, size)
-                yield path, slice(lo, hi), src[lo:hi]
-
-    def _replay_journal(self, journal: dict) -> dict:
-        """Redoes an interrupted journalled commit; returns the attributes it led to."""
-        for path, rows, values in self._journal_chunks(journal):
-            self._group[path][rows] = values
-        self._commit_attrs({**journal["meta"], "journal": None})
-        return self._group.attrs.asdict()
-
-    # -- durability -----------------------------------------------------------
+    # -- durability ----------------------------------------------------------------------------
 
     def flush(self) -> None:
         """Blocks until every row written so far is durable and committed."""
         if self.read_only or self._closed:
             return
-        if not self._background:
-            if self._dirty or self._meta_dirty:
-                self._commit(everything=True)
-            self._raise_writer_error()
-            return
-        with self._cv:
-            if not (self._dirty or self._meta_dirty or self._inflight) and self._flush_done >= self._flush_req:
-                self._raise_writer_error()
-                return
-            self._flush_req += 1
-            target = self._flush_req
-        self._kick()
-        with self._cv:
-            while self._flush_done < target and self._error is None:
-                if self._thread is None:  # it went idle before seeing the request
-                    self._thread = threading.Thread(target=self._writer_loop, daemon=True)
-                    self._thread.start()
-                self._cv.wait(0.5)
-        self._raise_writer_error()
+        self._engine.flush()
 
     def _raise_writer_error(self) -> None:
-        err = self._error
-        if err is not None:
-            raise RuntimeError(
-                f"The background writer of {self.path!r} failed: {type(err).__name__}: {err}. "
-                f"Rows written after the last commit ({self._committed_len} rows) are not durable; "
-                f"fix the cause (disk space, permissions) and reopen the store."
-            ) from err
+        self._engine.raise_error()
 
     def close(self) -> None:
         """Flushes, stops the writer and releases the store. Idempotent.
@@ -1045,7 +905,7 @@ class ZarrStorage(LazyTensorStorage):
         if self._closed:
             return
         try:
-            with _lifecycle.critical():
+            with lifecycle.critical():
                 self.flush()
         finally:
             self._release()
@@ -1062,7 +922,7 @@ class ZarrStorage(LazyTensorStorage):
         if close is not None:
             try:
                 close()
-            except Exception:
+            except Exception:  # noqa: BLE001 - nothing to save in a store being closed
                 pass
 
     def __enter__(self) -> ZarrStorage:
@@ -1075,41 +935,100 @@ class ZarrStorage(LazyTensorStorage):
         try:
             if not getattr(self, "_closed", True):
                 self.close()
-        except Exception:
+        except Exception:  # noqa: BLE001 - never raise from a finaliser
             pass
 
     def refresh(self) -> int:
         """Re-reads a store opened ``read_only`` to see rows committed since. Returns ``len``."""
         if not self.read_only:
             return len(self)
-        self._group = _zarr.open_group(self._store, read_only=True)
+        self._group = _backend.open_group(self._store, read_only=True)
+        self._engine.group = self._group
         attrs = self._group.attrs.asdict()
         if attrs.get("schema") is None:
             return 0
         self._sync_attrs(attrs)
+        self.initialized = False
         self._load_rows(attrs)
         return len(self)
 
-    # -- state ----------------------------------------------------------------
+    # -- state -----------------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """A pointer to the store, not its rows (the store is its own checkpoint)."""
+        """TorchRL's storage state (the rows, ``initialized``, ``_len``) plus this store's bookkeeping.
+
+        The rows are the RAM mirror's own tensors (no copy); a
+        :class:`~torchrl.data.LazyTensorStorage` can load this state too.
+        """
         self.flush()
-        return {"store": self.path, "_len": len(self), "write_count": self._write_count}
+        rows = self._storage.state_dict() if self.initialized else {}
+        return {
+            "_storage": rows,
+            "initialized": self.initialized,
+            "_len": len(self),
+            "zarr": {
+                "store": self.path if isinstance(self.path, str) else None,
+                "write_count": self._write_count,
+                "cursor": self._writer_cursor,
+                "env_names": list(self._env_names),
+                "kind": self._kind.to_json(),
+                "ndim": self.ndim,
+            },
+        }
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        store = state_dict.get("store")
-        if store != self.path:
-            raise ValueError(
-                f"This state_dict belongs to the ZarrStorage at {store!r}, not {self.path!r}."
-            )
+        """Loads rows from another storage's ``state_dict`` (this store's own: only the writer position).
 
-    def __getstate__(self):
-        raise RuntimeError(
-            "A ZarrStorage cannot be pickled or sent to another process: it owns the store's "
-            "writer. Extend the buffer from the main process (iterate the collector and call "
-            "rb.extend), or open the store with read_only=True in the other process."
-        )
+        Rows from another store (or a TorchRL storage) are written into this one
+        as a new run, replacing what it held.
+        """
+        meta = state_dict.get("zarr") or {}
+        if meta.get("store") is not None and meta.get("store") == self.path:
+            self._restore_writers(force=True)
+            return
+        self._check_writable()
+        source = state_dict.get("_storage")
+        n = int(state_dict.get("_len", 0))
+        if isinstance(source, torch.Tensor):
+            source = TensorDict({DataKind.TENSOR_KEY: source}, batch_size=source.shape[:1])
+        elif isinstance(source, dict):
+            source = TensorDict().load_state_dict(source, strict=False)
+            source.batch_size = source.batch_size if source.batch_dims else _leading(source)
+        if self.initialized:
+            self._empty()
+        if n:
+            rows = source[: -(-n // max(1, math.prod(source.shape[1:self.ndim])))]
+            names = meta.get("env_names")
+            if names and "env" in rows.keys():
+                codes = rows.get("env")
+                table = torch.tensor([self.env_code(x, create=True) for x in names] + [UNKNOWN_ENV])
+                rows.set("env", table[codes.clamp(min=-1)])
+            kind = DataKind.from_json(meta.get("kind")) if meta else DataKind()
+            data = kind.from_tensordict(rows) if kind.kind != "tensordict" else rows
+            n0 = rows.shape[0]
+            self.set(torch.arange(n0), data)
+            writer_cursor = int(meta.get("cursor", n0 % self._max_dim0)) % self._max_dim0
+            self._writer_cursor = writer_cursor
+            self._write_count = int(meta.get("write_count", n0))
+            with self._engine.cv:
+                self._engine.mark_meta_dirty()
+        self._restore_writers(force=True)
+        self.flush()
+
+    def __reduce__(self):
+        """Pickling gives a read-only handle on the same store in the receiving process.
+
+        A store has one writer process: collector workers, ``ParallelEnv``
+        workers and ``copy.deepcopy`` get a reader that sees what was committed
+        (everything written so far: this flushes first).
+        """
+        if not isinstance(self.path, str) or self.path.startswith("memory://"):
+            raise RuntimeError(
+                f"A ZarrStorage on {self.path!r} cannot be sent to another process: the store lives "
+                f"in this process's memory. Use a directory or a shared URL store."
+            )
+        self.flush()
+        return (_open_read_only, (self.path, self._storage_options, str(self.device)))
 
     def summary(self) -> dict[str, Any]:
         """Rows, episodes, runs, success rates, env names and size on disk, as a dict.
@@ -1119,21 +1038,25 @@ class ZarrStorage(LazyTensorStorage):
         """
         n = len(self)
         out: dict[str, Any] = {"path": self.path, "rows": n, "max_size": self.max_size}
-        if n and self.initialized:
-            out["episodes"] = int(torch.unique(self._storage.get("episode")[:n]).numel())
-            out["runs"] = int(torch.unique(self._storage.get("run")[:n]).numel())
+        keys = set(self._storage.keys(True, True)) if self.initialized else set()
+        if n and "episode" in keys:
+            cols = self._flat_columns(
+                [k for k in ("episode", "run", ("next", "is_success"), _DONE_KEY) if k in keys], n
+            )
+            out["episodes"] = int(torch.unique(cols["episode"]).numel())
+            out["runs"] = int(torch.unique(cols["run"]).numel())
             succ = ("next", "is_success")
-            if succ in self._storage.keys(True, True):
-                success = self._storage.get(succ)[:n].reshape(n, -1)[:, 0] > 0.5
+            if succ in cols:
+                success = cols[succ].reshape(n, -1)[:, 0] > 0.5
                 out["success_rate"] = float(success.float().mean())
-                if _DONE_KEY in self._storage.keys(True, True):
-                    ends = self._storage.get(_DONE_KEY)[:n].reshape(n, -1).any(-1)
+                if _DONE_KEY in cols:
+                    ends = cols[_DONE_KEY].reshape(n, -1).any(-1)
                     if ends.any():  # success at the last step of each finished episode
                         out["episode_success_rate"] = float(success[ends].float().mean())
         else:
             out["episodes"] = out["runs"] = 0
         out["envs"] = self.env_names
-        out["bytes_on_disk"] = _zarr.store_size_bytes(self._local_dir)
+        out["bytes_on_disk"] = _backend.store_size_bytes(self._local_dir)
         return out
 
     def __repr__(self) -> str:
@@ -1143,7 +1066,11 @@ class ZarrStorage(LazyTensorStorage):
         )
 
 
-# -- helpers ------------------------------------------------------------------
+# -- helpers ------------------------------------------------------------------------------
+
+
+def _open_read_only(path: str, storage_options: dict | None, device: str) -> ZarrStorage:
+    return ZarrStorage(path, read_only=True, storage_options=storage_options, device=device)
 
 
 def _library_version() -> str:
@@ -1152,10 +1079,22 @@ def _library_version() -> str:
     return __version__
 
 
+def _leading(td: TensorDictBase) -> torch.Size:
+    leaf = next(iter(td.values(True, True)))
+    return leaf.shape[:1]
+
+
+def _stack_trees(items: list) -> Any:
+    from torch.utils._pytree import tree_map
+
+    first = items[0]
+    if isinstance(first, torch.Tensor):
+        return torch.stack(items, 0)
+    return tree_map(lambda *xs: torch.stack(xs, 0), first, *items[1:])
+
+
 def _is_int_cursor(cursor) -> bool:
-    return isinstance(cursor, (int, np.integer)) or (
-        isinstance(cursor, torch.Tensor) and cursor.ndim == 0
-    )
+    return isinstance(cursor, (int, np.integer)) or (isinstance(cursor, torch.Tensor) and cursor.ndim == 0)
 
 
 def _cursor_rows(cursor, max_size: int) -> torch.Tensor:
@@ -1166,6 +1105,3 @@ def _cursor_rows(cursor, max_size: int) -> torch.Tensor:
     if isinstance(cursor, range):
         return torch.tensor(list(cursor), dtype=torch.long)
     return torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()
-
-
-

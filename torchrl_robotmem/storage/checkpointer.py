@@ -1,0 +1,77 @@
+"""``ZarrCheckpointer``: what ``rb.dumps`` / ``rb.loads`` and ``torchrl.checkpoint`` do with a ZarrStorage.
+
+``dumps(path)`` flushes the store and writes a self-contained copy of it to
+``path/store.zarr`` plus a small ``zarr_storage.json`` (the source store, its
+length and write count). On a local filesystem the copy is made of hard links:
+Zarr replaces chunk files by renaming new ones into place, so a linked chunk
+never changes afterwards and the copy costs no disk space until the live store
+moves on. ``loads(path)`` into the buffer on the same store only puts the
+writer back where the store says; into a buffer on another store it copies the
+rows (``load_state_dict``), as TorchRL's storages do.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
+
+__all__ = ["ZarrCheckpointer"]
+
+_POINTER = "zarr_storage.json"
+_COPY = "store.zarr"
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    """Copies a directory tree with hard links (plain copies across filesystems)."""
+
+    def link(s: str, d: str) -> None:
+        try:
+            os.link(s, d)
+        except OSError:
+            shutil.copy2(s, d)
+
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst, copy_function=link, ignore=shutil.ignore_patterns("*.partial"))
+
+
+class ZarrCheckpointer(StorageCheckpointerBase):
+    """Checkpointer for :class:`~torchrl_robotmem.ZarrStorage` (see the module docstring)."""
+
+    def dumps(self, storage: Any, path: str | os.PathLike) -> None:
+        storage.flush()
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        meta = {"store": storage.path, "len": len(storage), "write_count": storage._write_count, "copy": None}
+        local = storage._local_dir
+        if local is not None:
+            _link_tree(Path(local), path / _COPY)
+            meta["copy"] = _COPY
+        with open(path / _POINTER, "w") as f:
+            json.dump(meta, f)
+
+    def loads(self, storage: Any, path: str | os.PathLike) -> None:
+        path = Path(path)
+        pointer = path / _POINTER
+        if not pointer.exists():
+            raise FileNotFoundError(f"{pointer} not found: this checkpoint was not written by a buffer on a ZarrStorage.")
+        with open(pointer) as f:
+            meta = json.load(f)
+        if meta["store"] == storage.path:
+            # The store holds the newest state, which may be ahead of the checkpoint.
+            storage._restore_writers(force=True)
+            return
+        if not meta.get("copy"):
+            raise ValueError(
+                f"This checkpoint points to the Zarr store {meta['store']!r} and holds no copy of it; "
+                f"the buffer's storage is {storage.path!r}. Build the buffer with "
+                f"ZarrStorage({meta['store']!r}) to resume from it."
+            )
+        from .zarr_storage import ZarrStorage
+
+        source = ZarrStorage(path / meta["copy"], read_only=True)
+        storage.load_state_dict(source.state_dict())
