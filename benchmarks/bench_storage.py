@@ -293,14 +293,18 @@ def main():
         print(f"\nReopen {args.rows:,}-row store in a fresh process (median of 3, page cache warm): "
               f"ZarrStorage(path) {reopen['open_s']:.2f} s (writable), read_only {reopen['open_read_only_s']:.2f} s; "
               f"imports {reopen['import_s']:.2f} s.")
-    per_rep = ", ".join(f"{r['extend_fg_rows_s'] / 1e3:,.0f}k" for r in results[DEFAULT])
-    print(f"\nZarrStorage default, foreground rows/s per repetition: {per_rep} (bimodal when a timed "
-          f"commit does or does not overlap the extend loop)")
+    per_rep = ", ".join(
+        f"{r['extend_fg_rows_s'] / 1e3:,.0f}k ({r['extend_fg_rows_s'] / m['extend_fg_rows_s']:.2f}x memmap)"
+        for r, m in zip(results[DEFAULT], results["LazyMemmapStorage"])
+    )
+    print(f"\nZarrStorage default, foreground rows/s per repetition (same-repetition ratio): {per_rep}")
+    worst = min(r["extend_fg_rows_s"] / m["extend_fg_rows_s"] for r, m in zip(results[DEFAULT], results["LazyMemmapStorage"]))
     d = summary[DEFAULT]
     targets = {
-        "foreground >= 0.8x memmap": d["fg_vs_memmap"] >= 0.8,
+        "foreground >= 0.8x memmap in every repetition": worst >= 0.8,
         "durable >= 0.25x memmap": d["durable_vs_memmap"] >= 0.25,
         "sample >= 1.0x LazyTensorStorage speed": d["sample_speed_vs_lts"] >= 1.0,
+        "HER sample >= 1.0x LazyTensorStorage speed": d.get("her_speed_vs_lts", 0) >= 1.0,
         "disk <= 0.8x memmap": d.get("disk_vs_memmap", 9) <= 0.8,
         "reopen <= 3 s": reopen is not None and reopen["open_s"] <= 3.0,
     }

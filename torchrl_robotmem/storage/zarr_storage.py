@@ -602,6 +602,11 @@ class ZarrStorage(LazyTensorStorage):
                 raise ValueError("Cannot write an empty TensorDict.")
             data = torch.stack(data, 0) if all(is_tensor_collection(d) for d in data) else _stack_trees(data)
         kind = DataKind.of(data)
+        if self._schema is not None and kind.kind == self._kind.kind and not kind.same_as(self._kind):
+            raise ValueError(
+                f"This {kind.kind}'s structure differs from the one the store at {self.path!r} holds "
+                f"({kind.meta} vs {self._kind.meta}); every write must have the same structure."
+            )
         if self._schema is not None and not kind.same_as(self._kind):
             raise TypeError(
                 f"The store at {self.path!r} holds {self._kind.kind} data; got {kind.kind}. Every "
@@ -999,7 +1004,9 @@ class ZarrStorage(LazyTensorStorage):
         if n:
             rows = source[: -(-n // max(1, math.prod(source.shape[1:self.ndim])))]
             names = meta.get("env_names")
-            if names and "env" in rows.keys():
+            if not names:  # tags from a storage that did not write them: tag afresh
+                rows = rows.exclude(*TAG_KEYS)
+            elif "env" in rows.keys():
                 codes = rows.get("env")
                 table = torch.tensor([self.env_code(x, create=True) for x in names] + [UNKNOWN_ENV])
                 rows.set("env", table[codes.clamp(min=-1)])

@@ -1,0 +1,256 @@
+"""ZarrStorage honours TorchRL's storage contract: what LazyTensorStorage takes, it takes and persists.
+
+Each test covers one point of the contract directly (TorchRL's own replay-buffer
+suite is run against ZarrStorage by ``../shared/conformance/run-torchrl-rb-tests``;
+its remaining differences are listed in ``docs/storage.md``).
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import pickle
+
+import pytest
+import torch
+from tensordict import LazyStackedTensorDict, TensorDict, tensorclass
+from torchrl.data import (
+    LazyTensorStorage,
+    ReplayBuffer,
+    SliceSampler,
+    TensorDictReplayBuffer,
+)
+
+from torchrl_robotmem import ZarrStorage
+
+
+@tensorclass
+class Transition:
+    obs: torch.Tensor
+    reward: torch.Tensor
+
+
+def _td(n, start=0, **extra):
+    i = torch.arange(start, start + n)
+    return TensorDict({"obs": i.float().unsqueeze(-1).expand(n, 3).clone(), ("next", "r"): -i.float(), **extra}, [n])
+
+
+# -- data kinds -----------------------------------------------------------------------
+
+
+def test_plain_tensors_round_trip_and_reopen(tmp_path):
+    path = tmp_path / "t.zarr"
+    rb = ReplayBuffer(storage=ZarrStorage(path, 100), batch_size=8)
+    rb.extend(torch.arange(30.0).reshape(10, 3))
+    batch = rb.sample()
+    assert isinstance(batch, torch.Tensor) and batch.shape == (8, 3)
+    assert set((batch[:, 0] / 3).long().tolist()) <= set(range(10))
+    rb.add(torch.tensor([90.0, 91.0, 92.0]))
+    rb.storage.close()
+    st = ZarrStorage(path, read_only=True)
+    assert len(st) == 11 and torch.equal(st[10], torch.tensor([90.0, 91.0, 92.0]))
+    assert torch.equal(st[:10], torch.arange(30.0).reshape(10, 3))
+
+
+def test_pytrees_round_trip_and_reopen(tmp_path):
+    path = tmp_path / "p.zarr"
+    rb = ReplayBuffer(storage=ZarrStorage(path, 100), batch_size=4)
+    data = {"obs": torch.randn(6, 2), "pair": (torch.arange(6), torch.ones(6, 1, dtype=torch.bool))}
+    rb.extend(data)
+    batch = rb.sample()
+    assert set(batch) == {"obs", "pair"} and isinstance(batch["pair"], tuple)
+    assert batch["pair"][0].dtype == torch.int64 and batch["pair"][1].shape == (4, 1)
+    with pytest.raises(ValueError, match="structure"):
+        rb.extend({"obs": torch.randn(2, 2)})  # another tree structure
+    rb.storage.close()
+    st = ZarrStorage(path, read_only=True)
+    got = st[torch.arange(6)]
+    assert torch.equal(got["obs"], data["obs"]) and torch.equal(got["pair"][0], data["pair"][0])
+
+
+def test_tensorclasses_round_trip(tmp_path):
+    path = tmp_path / "c.zarr"
+    rb = ReplayBuffer(storage=ZarrStorage(path, 100), batch_size=4)
+    rb.extend(Transition(obs=torch.randn(5, 3), reward=torch.arange(5.0), batch_size=[5]))
+    assert isinstance(rb.sample(), Transition)
+    rb.storage.close()
+    # reopened in a process where the class is imported: the same class comes back
+    st = ZarrStorage(path, read_only=True)
+    out = st[torch.arange(5)]
+    assert isinstance(out, Transition) and torch.equal(out.reward, torch.arange(5.0))
+
+
+def test_kinds_do_not_mix(tmp_path):
+    rb = ReplayBuffer(storage=ZarrStorage(tmp_path / "k.zarr", 10))
+    rb.extend(torch.zeros(3, 2))
+    with pytest.raises(TypeError, match="holds tensor data"):
+        rb.extend(TensorDict({"a": torch.zeros(3)}, [3]))
+    assert len(rb) == 3 and rb.writer._cursor == 3
+
+
+# -- layouts ---------------------------------------------------------------------------
+
+
+def test_ndim2_storage_with_slice_sampler_survives_reopen(tmp_path):
+    """A 2-D storage holds what LazyTensorStorage(ndim=2) holds, and keeps it across a reopen."""
+    path = tmp_path / "n.zarr"
+    envs, T = 4, 25
+    done = torch.zeros(envs, T, 1, dtype=torch.bool)
+    done[:, -1] = True
+    data = TensorDict({"obs": torch.arange(envs * T).float().reshape(envs, T, 1), ("next", "done"): done,
+                       "traj": torch.arange(envs).unsqueeze(-1).expand(envs, T).clone()}, [envs, T])
+    ref = LazyTensorStorage(400, ndim=2)
+    ref_rb = TensorDictReplayBuffer(storage=ref)
+    ref_rb.extend(data)
+    storage = ZarrStorage(path, 400, ndim=2)
+    rb = TensorDictReplayBuffer(storage=storage, sampler=SliceSampler(slice_len=5, traj_key="traj"), batch_size=20)
+    rb.extend(data)
+    assert len(rb) == len(ref) == envs * T and storage.shape == ref.shape
+    assert torch.equal(storage[:]["obs"], ref[:]["obs"])
+    batch = rb.sample().reshape(-1, 5)
+    # every slice is 5 consecutive steps of one trajectory
+    assert (batch["traj"] == batch["traj"][:, :1]).all()
+    assert (batch["obs"].squeeze(-1).diff(dim=1) == 1).all()
+    assert storage["episode"].shape == storage.shape
+    storage.close()
+    st = ZarrStorage(path)
+    rb2 = TensorDictReplayBuffer(storage=st, sampler=SliceSampler(slice_len=5, traj_key="traj"), batch_size=20)
+    assert len(rb2) == envs * T and st.shape == ref.shape
+    assert torch.equal(st[:]["obs"], ref[:]["obs"])
+    rb2.extend(data)
+    ref_rb.extend(data)
+    assert len(rb2) == 2 * envs * T and torch.equal(st[:]["obs"], ref[:]["obs"])
+    rb2.sample()
+    st.close()
+
+
+def test_lazy_stacks_and_lists_of_tensordicts(tmp_path):
+    rb = ReplayBuffer(storage=ZarrStorage(tmp_path / "l.zarr", 100), batch_size=4)
+    rb.extend(LazyStackedTensorDict.lazy_stack([_td(1, i)[0] for i in range(5)], 0))
+    rb.extend([_td(1, 5 + i)[0] for i in range(3)])  # a list: one item per element
+    assert len(rb) == 8
+    assert torch.equal(rb.storage["obs"][:8, 0], torch.arange(8.0))
+    rb.storage.close()
+
+
+# -- schema evolution and in-place writes ----------------------------------------------
+
+
+def test_keys_added_after_the_first_write_are_recorded(tmp_path):
+    path = tmp_path / "e.zarr"
+    st = ZarrStorage(path, 100)
+    rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+    rb.extend(_td(5))
+    rev = st._mutation_revision
+    rb.extend(_td(3, 5).set(("info", "gap"), torch.full((3, 2), 7.0)))
+    assert st._mutation_revision > rev
+    assert torch.equal(st[("info", "gap")][:8], torch.tensor([[0.0, 0.0]] * 5 + [[7.0, 7.0]] * 3))
+    rb.extend(_td(2, 8).set(("info", "gap"), torch.ones(2, 2)))
+    with pytest.raises(KeyError, match="missing keys.*gap"):  # a key the store holds cannot vanish
+        rb.extend(_td(1, 10))
+    with pytest.raises(ValueError, match="'obs'.*float64"):  # nor change dtype
+        rb.extend(TensorDict({"obs": torch.zeros(1, 3, dtype=torch.float64), ("next", "r"): torch.zeros(1),
+                              ("info", "gap"): torch.zeros(1, 2)}, [1]))
+    st.close()
+    st = ZarrStorage(path, read_only=True)
+    assert len(st) == 10 and torch.equal(st[("info", "gap")][8:10], torch.ones(2, 2))
+
+
+def test_in_place_writes_are_durable(tmp_path):
+    path = tmp_path / "w.zarr"
+    st = ZarrStorage(path, 100)
+    rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+    rb.extend(_td(10))
+    rev = st._mutation_revision
+    rb[3] = _td(1, 100)[0]
+    rb[torch.tensor([5, 6])] = _td(2, 200)
+    assert st._mutation_revision > rev
+    assert len(rb) == 10 and rb.writer._cursor == 10
+    st.close()
+    st = ZarrStorage(path, read_only=True)
+    assert st["obs"][:, 0].tolist() == [0, 1, 2, 100, 4, 200, 201, 7, 8, 9]
+
+
+def test_every_write_path_bumps_the_mutation_revision(tmp_path):
+    st = ZarrStorage(tmp_path / "r.zarr", 100)
+    rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+    seen = [st._mutation_revision]
+
+    def bumped():
+        seen.append(st._mutation_revision)
+        return seen[-1] > seen[-2]
+
+    rb.extend(_td(4))
+    assert bumped()
+    rb.add(_td(1, 4)[0])
+    assert bumped()
+    rb[0] = _td(1, 9)[0]
+    assert bumped()
+    other = ZarrStorage(tmp_path / "o.zarr", 100)
+    TensorDictReplayBuffer(storage=other).extend(_td(3))
+    st.load_state_dict(other.state_dict())
+    assert bumped()
+    rb.empty()
+    assert bumped()
+    st.close()
+    other.close()
+
+
+# -- state, copies and processes ----------------------------------------------------------
+
+
+def test_state_dict_carries_the_rows_between_storages(tmp_path):
+    src = TensorDictReplayBuffer(storage=ZarrStorage(tmp_path / "a.zarr", 100, env="FetchPush-v4"), batch_size=4)
+    src.extend(_td(12))
+    sd = src.state_dict()
+    # into a ZarrStorage on another path: rows, length and the writer's position come along
+    dst = TensorDictReplayBuffer(storage=ZarrStorage(tmp_path / "b.zarr", 100), batch_size=4)
+    dst.load_state_dict(sd)
+    assert len(dst) == 12 and dst.writer._cursor == 12
+    assert torch.equal(dst.storage["obs"][:12], src.storage["obs"][:12])
+    assert dst.storage.env_names == ("FetchPush-v4",) and (dst.storage["env"][:12] == 0).all()
+    dst.storage.close()
+    assert len(ZarrStorage(tmp_path / "b.zarr", read_only=True)) == 12  # durable, not a pointer
+    # and into TorchRL's own LazyTensorStorage
+    lts = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+    lts.load_state_dict(sd)
+    assert len(lts) == 12 and torch.equal(lts.storage[:12]["obs"], src.storage["obs"][:12])
+    # and from it
+    back = TensorDictReplayBuffer(storage=ZarrStorage(tmp_path / "c.zarr", 100), batch_size=4)
+    back.load_state_dict(lts.state_dict())
+    assert len(back) == 12 and torch.equal(back.storage["obs"][:12], src.storage["obs"][:12])
+    src.storage.close()
+    back.storage.close()
+
+
+def test_constructor_takes_torchrl_storage_arguments(tmp_path):
+    st = ZarrStorage(tmp_path / "a.zarr", 10, ndim=1, compilable=True, device="cpu")
+    TensorDictReplayBuffer(storage=st).extend(_td(3))
+    assert len(st) == 3
+    st.close()
+    with pytest.raises(ValueError, match="shared_init=True. is not supported"):
+        ZarrStorage(tmp_path / "b.zarr", 10, shared_init=True)
+    with pytest.raises(TypeError, match="first argument is the store's path"):
+        ZarrStorage(1000)  # functools.partial(LazyTensorStorage, ...) with only the class changed
+
+
+def _child_reads(storage, queue):
+    try:
+        queue.put((storage.read_only, len(storage), storage["obs"][:, 0].tolist()))
+        storage.set(0, _td(1)[0])
+    except RuntimeError as err:
+        queue.put(str(err))
+
+
+def test_pickled_into_another_process_it_is_a_read_only_handle(tmp_path):
+    st = ZarrStorage(tmp_path / "m.zarr", 100)
+    TensorDictReplayBuffer(storage=st).extend(_td(6))  # not flushed: pickling flushes
+    assert pickle.loads(pickle.dumps(st)).read_only
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_child_reads, args=(st, queue))
+    proc.start()
+    read_only, n, obs = queue.get(timeout=120)
+    err = queue.get(timeout=60)
+    proc.join(60)
+    assert read_only and n == 6 and obs == [0, 1, 2, 3, 4, 5]
+    assert "read_only" in err
+    st.close()
