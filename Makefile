@@ -5,7 +5,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test lint bench clean
 
 install: $(STAMP)
 
@@ -25,7 +25,11 @@ demo: install
 	$(PY) recipes/her/train.py $(DEMO_ARGS)
 
 test: install
+	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes
 	$(PY) -m pytest -q
+
+lint: install
+	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes
 
 bench: install
 	$(PY) benchmarks/bench_storage.py

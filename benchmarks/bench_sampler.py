@@ -40,7 +40,6 @@ import sys
 import tempfile
 import time
 
-import numpy as np
 import torch
 from torchrl.data import HERReplayBuffer, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 

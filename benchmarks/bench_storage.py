@@ -161,7 +161,7 @@ def run_repetition(cfgs: dict, order: list, data, scratch: Path, n_samples: int,
         for n, v in live.items()
     }
     her = sample_all(hers, max(40, n_samples // 4))
-    for name, (storage, rb, path) in live.items():
+    for name, (storage, _rb, path) in live.items():
         results[name]["sample_ms"] = uniform[name]
         results[name]["her_sample_ms"] = her[name]
         if isinstance(storage, ZarrStorage):

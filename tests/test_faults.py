@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import torch
 from _rows import fetch_rows
-from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_robotmem import GoalSimilaritySampler, RobotMemory, ZarrStorage

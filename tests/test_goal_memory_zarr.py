@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 import zarr
+from _rows import fetch_rows  # no env / run / episode columns: the storage writes them
 from torchrl.data import HERReplayBuffer, RandomSampler, TensorDictReplayBuffer
 
-from _rows import fetch_rows  # no env / run / episode columns: the storage writes them
 from torchrl_robotmem import GoalIndex, GoalSimilaritySampler, ZarrStorage, make_reward_fn, recall
 
 torch.set_num_threads(1)

@@ -5,16 +5,16 @@ import gc
 import math
 from functools import partial
 
+import _rows
 import numpy as np
 import pytest
 import torch
+from _rows import unit_quat
 from tensordict import TensorDict
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
-import _rows
-from _rows import unit_quat
-from torchrl_robotmem.metrics import EuclideanMetric, PoseMetric, get_metric
 from torchrl_robotmem.goal_index import _INDEX_CACHE, GoalIndex, recall
+from torchrl_robotmem.metrics import EuclideanMetric, PoseMetric, get_metric
 
 torch.set_num_threads(1)
 
@@ -252,7 +252,7 @@ def test_pose_metric_exact_and_sign_invariant(backend):
     dist, idx, _ = index.search(stored, 1)
     assert idx[:, 0].tolist() == [3, 99, 2048]
     assert (dist[:, 0] < 1e-6).all()
-    for step in range(3):
+    for _ in range(3):
         rb.extend(fetch_rows(300, gen, goal_dim=7))
         assert_exact(index, rb, queries, 5, metric=metric)
     success = column(rb, ("next", "is_success")) > 0.5

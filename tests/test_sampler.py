@@ -4,11 +4,11 @@ from __future__ import annotations
 import json
 from functools import partial
 
+import _rows
 import pytest
 import torch
 from torchrl.data import HERReplayBuffer, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
-import _rows
 from torchrl_robotmem.goal_index import GoalIndex
 from torchrl_robotmem.sampler import GoalSimilaritySampler
 

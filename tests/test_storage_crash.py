@@ -335,7 +335,7 @@ def test_sigkill_ring_store(tmp_path):
     print(f"seed={seed} rows={tracker.last_w} wraps={tracker.last_w // 300} kills while opening="
           f"{startup} episodes closed at reopen={len(tracker.forced_done)} "
           f"pending journals at reopen={tracker.pending_journals} "
-          
+
           f"leftover .partial files={_leftover_partials(tmp_path / 'store.zarr')}")
     assert tracker.ring and tracker.last_w > 5 * 300
     assert progressed >= _kills(18) // 3

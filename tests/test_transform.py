@@ -108,10 +108,7 @@ def test_collector_priors_match_search_and_survive_reopen(env_id, memories, tmp_
     goals = first["desired_goal"]
     _assert_matches_search(goals, first["prior_goals"], first["prior_goals_dist"],
                            first["prior_goals_mask"], memory, metric)
-    _, index, _ = GoalIndex(memory, metric=metric).search(goals, K)
     # the recalled context belongs to the recalled goal (ties share the goal, not the action)
-    recalled = memory[index]
-    pairs = torch.cat([recalled["next", "achieved_goal"], recalled["action"]], -1)
     got = torch.cat([first["prior_goals"], first["prior_actions"]], -1)
     stored = torch.cat([memory[: len(memory)]["next", "achieved_goal"], memory[: len(memory)]["action"]], -1)
     assert (got.reshape(-1, 1, got.shape[-1]) == stored).all(-1).any(-1).all()

@@ -14,11 +14,11 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from .envs import make_env, make_reward_fn
-from .storage import ZarrStorage
 from .goal_index import GoalIndex, recall
-from .sampler import GoalSimilaritySampler
-from .transform import RecallTransform
 from .memory import RobotMemory
+from .sampler import GoalSimilaritySampler
+from .storage import ZarrStorage
+from .transform import RecallTransform
 
 __all__ = [
     "GoalIndex",

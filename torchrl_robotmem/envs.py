@@ -21,7 +21,6 @@ import numpy as np
 import torch
 from tensordict.base import TensorDictBase
 from tensordict.utils import NestedKey
-
 from torchrl.envs import (
     Compose,
     DoubleToFloat,
@@ -62,7 +61,7 @@ _SUPPORTED_HELP = (
 # -- id resolution ---------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _registered_ids() -> dict[str, str]:
     """Supported Gymnasium-Robotics ids mapped to their family.
 

@@ -40,7 +40,8 @@ import math
 import time
 import weakref
 from collections import OrderedDict
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -194,7 +195,7 @@ class _BruteSegment(_Segment):
             q = torch.from_numpy(v).float()
             X, norms = self.X, self.norms
             a, loc = self._topk(
-                lambda c0, c1: torch.addmm(norms[c0:c1].unsqueeze(0), q, X[c0:c1].T, alpha=-2),
+                lambda c0, c1, q=q, X=X, norms=norms: torch.addmm(norms[c0:c1].unsqueeze(0), q, X[c0:c1].T, alpha=-2),
                 q.shape[0],
                 kk,
             )

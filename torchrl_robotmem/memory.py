@@ -19,9 +19,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
-from .storage import _backend as _zarr
 from .goal_index import GoalIndex
 from .storage import TAG_KEYS, ZarrStorage
+from .storage import _backend as _zarr
 
 __all__ = ["RobotMemory"]
 

@@ -31,7 +31,7 @@ to run exact searches through a KD-tree.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch

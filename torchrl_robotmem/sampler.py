@@ -12,8 +12,9 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,8 +22,8 @@ from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
-from torchrl_robotmem.metrics import GoalMetric
 from torchrl_robotmem.goal_index import GoalIndex, _revision, _shared_index
+from torchrl_robotmem.metrics import GoalMetric
 
 __all__ = ["GoalSimilaritySampler"]
 

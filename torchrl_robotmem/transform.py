@@ -20,8 +20,8 @@ the multi-goal tasks of Gymnasium-Robotics. See ``docs/transform.md``.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
-from typing import Any, Callable
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -30,8 +30,8 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.data.replay_buffers.storages import Storage
 from torchrl.envs import Transform
 
-from .metrics import GoalMetric, get_metric
 from .goal_index import GoalIndex
+from .metrics import GoalMetric, get_metric
 from .storage import ZarrStorage
 
 __all__ = ["RecallTransform"]

@@ -58,7 +58,9 @@ class ZarrCheckpointer(StorageCheckpointerBase):
         path = Path(path)
         pointer = path / _POINTER
         if not pointer.exists():
-            raise FileNotFoundError(f"{pointer} not found: this checkpoint was not written by a buffer on a ZarrStorage.")
+            raise FileNotFoundError(
+                f"{pointer} not found: this checkpoint was not written by a buffer on a ZarrStorage."
+            )
         with open(pointer) as f:
             meta = json.load(f)
         if meta["store"] == storage.path:

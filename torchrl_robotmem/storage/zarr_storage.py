@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 import os
-import threading
 import weakref
 from typing import Any
 
@@ -764,9 +763,7 @@ class ZarrStorage(LazyTensorStorage):
         row = data if single else data[0]
         schema = spec_of(row.reshape(-1)[0] if row.batch_dims else row)
         self._inner_shape = tuple(row.batch_size)
-        row_bytes = sum(
-            _backend.numpy_dtype(_backend.torch_dtype(s["dtype"])).itemsize * math.prod(s["shape"]) for s in schema.values()
-        ) * self._inner_numel
+        row_bytes = PackedLayout(schema).row_bytes * self._inner_numel
         if self._chunk_rows is None:
             # ~4 MiB of rows per chunk group: large enough for fast sequential I/O,
             # small enough that a commit of a partial chunk stays cheap.
