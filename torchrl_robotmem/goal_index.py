@@ -51,6 +51,7 @@ from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers.storages import Storage, TensorStorage
 
 from torchrl_robotmem.metrics import GoalMetric, get_metric
+from torchrl_robotmem.storage.columns import has_rows, read_column
 
 __all__ = ["GoalIndex", "recall"]
 
@@ -555,16 +556,7 @@ class GoalIndex:
 
     # -- storage synchronisation ----------------------------------------------
     def _column(self, st, key: NestedKey, n: int) -> np.ndarray:
-        data = st._storage
-        col = data.get(key, None) if isinstance(data, TensorDictBase) else None
-        if col is None:
-            keys = sorted(
-                (_key_str(k) for k in data.keys(True, True)) if isinstance(data, TensorDictBase) else []
-            )
-            raise KeyError(
-                f"the storage has no column {_key_str(key)}; available keys: {', '.join(keys)}."
-            )
-        col = col[:n]
+        col = read_column(st, key, n)
         if col.device.type != "cpu":
             col = col.cpu()
         return torch.Tensor.numpy(col.as_subclass(torch.Tensor) if type(col) is not torch.Tensor else col)
@@ -574,7 +566,7 @@ class GoalIndex:
         rev = _revision(st)
         if rev is not None and rev == self._rev:
             return
-        initialized = st.initialized and isinstance(st._storage, TensorDictBase)
+        initialized = has_rows(st)
         n = len(st) if initialized else 0
         if not initialized:
             if self._n or self._goal_shape is not None:

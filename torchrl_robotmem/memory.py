@@ -96,7 +96,7 @@ class RobotMemory:
                 "robotmem's spelling RobotMemory(db='gym_robotics.db'), not both."
             )
         path = db if path is None else path
-        if max_size is None and not read_only and not _store_exists(path):
+        if max_size is None and not read_only and not _zarr.store_exists(path):
             max_size = 1_000_000
         self.storage = ZarrStorage(path, max_size, env=env, read_only=read_only, **storage_kwargs)
         self.buffer = TensorDictReplayBuffer(storage=self.storage, batch_size=256)
@@ -303,15 +303,3 @@ def _row(value: Any, name: str) -> torch.Tensor:
     if not torch.isfinite(out).all():
         raise ValueError(f"{name!r} holds NaN or inf values: {out.tolist()}.")
     return out
-
-
-def _store_exists(path: str | os.PathLike) -> bool:
-    spath = os.fspath(path)
-    if _zarr.is_url(spath) and not spath.startswith("file://"):
-        try:
-            _zarr.open_group(_zarr.open_store(spath, read_only=True, storage_options=None)[0], read_only=True)
-            return True
-        except Exception:
-            return False
-    spath = spath[len("file://") :] if spath.startswith("file://") else spath
-    return os.path.exists(os.path.join(spath, "zarr.json")) or (spath.endswith(".zip") and os.path.exists(spath))

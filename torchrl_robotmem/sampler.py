@@ -24,6 +24,7 @@ from torchrl.data.replay_buffers.storages import Storage
 
 from torchrl_robotmem.goal_index import GoalIndex, _revision, _shared_index
 from torchrl_robotmem.metrics import GoalMetric
+from torchrl_robotmem.storage.columns import read_column
 
 __all__ = ["GoalSimilaritySampler"]
 
@@ -271,7 +272,8 @@ class GoalSimilaritySampler(Sampler):
             parts_dist.append(cand_dist.gather(1, draws)[keep])
         if n_uniform:
             rows = self._uniform_rows(index, storage, n_uniform).to(torch.long).cpu()
-            goals = storage._storage.get(self.goal_key)[rows.to(storage._storage.device or "cpu")]
+            col = read_column(storage, self.goal_key)
+            goals = col[rows.to(col.device)]
             goals = goals.cpu().reshape(n_uniform, -1).double()
             d = index.metric.pairwise(self._query, goals).amin(0).float()
             parts_idx.append(rows)
