@@ -35,7 +35,7 @@ def test_sampler_filters_hold_without_a_query(tmp_path):
     batch = rb2.sample()  # no query set
     assert (batch["next", "is_success"] == 1).all()
     slide = rb.storage.env_code("FetchSlide-v4")
-    assert (batch["env"] == slide).all()
+    assert (rb.storage["env"][batch["index"]] == slide).all()
     # every matching row can come out, and nothing else
     matching = ((rb.storage["env"][:1000] == slide) & (rb.storage["next", "is_success"][:1000] == 1))
     assert set(batch["index"].tolist()) <= set(matching.nonzero().squeeze(-1).tolist())

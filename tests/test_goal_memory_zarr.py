@@ -30,7 +30,7 @@ def _seed():
 
 
 def zarr_rb(path, max_size=None, *, sampler=None, batch_size=64, **kw):
-    storage = ZarrStorage(path, max_size, chunk_rows=64, **kw)
+    storage = ZarrStorage(path, max_size, chunk_rows=64, **kw, sample_tags=True)
     return TensorDictReplayBuffer(storage=storage, sampler=sampler, batch_size=batch_size)
 
 
@@ -145,7 +145,7 @@ def test_same_answers_after_close_and_reopen(tmp_path):
     st.close()
 
     for read_only in (False, True):
-        reopened = ZarrStorage(path, read_only=read_only)
+        reopened = ZarrStorage(path, read_only=read_only, sample_tags=True)
         assert len(reopened) == 500 and reopened._writer_cursor == 250
         assert (reopened._storage[: len(reopened)] == rows_before).all()
         assert_same_answers(answers(GoalIndex(reopened), reopened, queries), before)
@@ -163,7 +163,7 @@ def test_same_answers_after_close_and_reopen(tmp_path):
         answers(index, rb.storage, queries)
     after = answers(index, rb.storage, queries)
     rb.storage.close()
-    reader = ZarrStorage(path, read_only=True)
+    reader = ZarrStorage(path, read_only=True, sample_tags=True)
     assert_same_answers(answers(GoalIndex(reader), reader, queries), after)
     reader.close()
 
@@ -174,7 +174,7 @@ def test_read_only_reader_follows_a_live_writer(tmp_path):
     rb = zarr_rb(path, 400, env="FetchPush-v4")
     rb.extend(fetch_rows(300, gen))
     rb.storage.flush()
-    reader = ZarrStorage(path, read_only=True)
+    reader = ZarrStorage(path, read_only=True, sample_tags=True)
     index = GoalIndex(reader)
     queries = torch.rand(16, 3, generator=gen)
     answers(index, reader, queries)
@@ -191,9 +191,9 @@ def test_read_only_reader_follows_a_live_writer(tmp_path):
 def test_env_and_run_filters_across_two_runs(tmp_path):
     gen = torch.Generator().manual_seed(3)
     path = tmp_path / "m.zarr"
-    with ZarrStorage(path, 2000, env="FetchPush-v4", chunk_rows=64) as st:
+    with ZarrStorage(path, 2000, env="FetchPush-v4", chunk_rows=64, sample_tags=True) as st:
         TensorDictReplayBuffer(storage=st).extend(fetch_rows(500, gen))
-    st = ZarrStorage(path, env="FetchSlide-v4", chunk_rows=64)
+    st = ZarrStorage(path, env="FetchSlide-v4", chunk_rows=64, sample_tags=True)
     rb = TensorDictReplayBuffer(storage=st, batch_size=256)
     rb.extend(fetch_rows(500, gen))
     assert st.env_names == ("FetchPush-v4", "FetchSlide-v4")
@@ -223,7 +223,7 @@ def test_env_and_run_filters_across_two_runs(tmp_path):
     assert (batch["env"] == 1).all() and batch["index"].min() >= 500
     st.close()
     # and so does a reader of the closed store
-    reader = ZarrStorage(path, read_only=True)
+    reader = ZarrStorage(path, read_only=True, sample_tags=True)
     assert reader.env_names == ("FetchPush-v4", "FetchSlide-v4", "FetchReach-v4")
     assert_exact(GoalIndex(reader), reader, queries, 6, env == 0, env="FetchPush-v4")
     reader.close()
@@ -266,7 +266,7 @@ def test_sampler_in_tensordict_replay_buffer(tmp_path):
 def test_sampler_in_her_replay_buffer(tmp_path):
     gen = torch.Generator().manual_seed(5)
     reward_fn = make_reward_fn("FetchPush-v4")
-    storage = ZarrStorage(tmp_path / "m.zarr", 4000, env="FetchPush-v4", chunk_rows=64)
+    storage = ZarrStorage(tmp_path / "m.zarr", 4000, env="FetchPush-v4", chunk_rows=64, sample_tags=True)
     her = HERReplayBuffer(
         reward_fn, her_ratio=0.5, storage=storage, batch_size=256,
         sampler=GoalSimilaritySampler(temperature=0.01, num_candidates=64),
@@ -299,7 +299,7 @@ def test_sampler_dumps_loads_next_to_rb_dumps(tmp_path):
     path = tmp_path / "m.zarr"
     sampler = GoalSimilaritySampler(temperature=0.03, num_candidates=40, uniform_ratio=0.25,
                                     env="FetchPush-v4")
-    rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 2000, env="FetchPush-v4", chunk_rows=64),
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 2000, env="FetchPush-v4", chunk_rows=64, sample_tags=True),
                                 sampler=sampler, batch_size=128, generator=torch.Generator().manual_seed(3))
     rb.extend(fetch_rows(1500, gen))
     sampler.set_query([[0.2, 0.3, 0.4], [0.8, 0.1, 0.5]])
@@ -318,7 +318,7 @@ def test_sampler_dumps_loads_next_to_rb_dumps(tmp_path):
     torch.testing.assert_close(got["goal_distance"], expected["goal_distance"])
     # a sampler checkpoint alone, loaded into a sampler of a read-only buffer
     sampler.dumps(tmp_path / "s")
-    reader = ZarrStorage(path, read_only=True)
+    reader = ZarrStorage(path, read_only=True, sample_tags=True)
     other = GoalSimilaritySampler()
     other.loads(tmp_path / "s")
     rb3 = TensorDictReplayBuffer(storage=reader, sampler=other, batch_size=64)

@@ -238,11 +238,16 @@ def test_schema_mismatch_leaves_store_untouched(tmp_path, transitions, mutate, m
     rb.storage.close()
 
 
-def test_batched_collector_output_is_refused_with_a_fix(tmp_path, transitions):
+def test_batched_collector_output_warns_with_a_fix(tmp_path, transitions):
+    """[num_envs, T] data in an ndim=1 store: items stored whole (as LazyTensorStorage), with advice."""
     with ZarrStorage(tmp_path / "m.zarr", 100) as s:
         rb = _rb(s)
-        with pytest.raises(ValueError, match="reshape\\(-1\\)"):
+        with pytest.warns(UserWarning, match="reshape\\(-1\\).*ndim=2"):
             rb.extend(transitions(20).reshape(2, 10))
+        assert len(rb) == 2 and rb.sample(3).batch_size == (3, 10)
+        assert s["episode"][:2].tolist() == [[0] * 10, [1] * 10]  # one episode id per item
+    with ZarrStorage(tmp_path / "m.zarr") as s:
+        assert torch.equal(s[:2]["observation"], transitions(20).reshape(2, 10)["observation"])
 
 
 def test_bad_paths_and_versions(tmp_path, transitions):

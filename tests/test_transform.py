@@ -43,7 +43,7 @@ def memories(tmp_path_factory):
         path = str(tmp_path_factory.mktemp("mem") / f"{env_id}.zarr")
         rb = _collect(
             functools.partial(make_env, env_id, seed=0, max_episode_steps=EP_LEN),
-            ZarrStorage(path, 1000, env=env_id),
+            ZarrStorage(path, 1000, env=env_id, sample_tags=True),
             frames=4 * EP_LEN,
         )
         rb.storage.close()
@@ -80,7 +80,7 @@ def test_collector_priors_match_search_and_survive_reopen(env_id, memories, tmp_
         transforms=[RecallTransform(path, K, metric=metric, context_keys={"action": "prior_actions"})],
     )
     out_path = tmp_path / "played.zarr"
-    rb = _collect(env_fn, ZarrStorage(out_path, 1000, env=env_id), frames=4 * EP_LEN)
+    rb = _collect(env_fn, ZarrStorage(out_path, 1000, env=env_id, sample_tags=True), frames=4 * EP_LEN)
     n = len(rb)
     played = rb.storage[:n]
     act_dim = played["action"].shape[-1]
@@ -104,7 +104,7 @@ def test_collector_priors_match_search_and_survive_reopen(env_id, memories, tmp_
         assert torch.equal(played["next", key], per_row), key
 
     # equal to a direct search at reset time (the memory is read-only: unchanged since)
-    memory = ZarrStorage(path, read_only=True)
+    memory = ZarrStorage(path, read_only=True, sample_tags=True)
     goals = first["desired_goal"]
     _assert_matches_search(goals, first["prior_goals"], first["prior_goals_dist"],
                            first["prior_goals_mask"], memory, metric)
@@ -116,7 +116,7 @@ def test_collector_priors_match_search_and_survive_reopen(env_id, memories, tmp_
     # reopen: the played buffer kept its priors, and a fresh transform on a reopened
     # memory recalls the same ones for the same goals
     rb.storage.close()
-    reopened = ZarrStorage(out_path, read_only=True)
+    reopened = ZarrStorage(out_path, read_only=True, sample_tags=True)
     assert torch.equal(reopened[:n]["prior_goals"], played["prior_goals"])
     fresh = RecallTransform(path, K, metric=metric).forward(TensorDict({"desired_goal": goals}, [len(goals)]))
     assert torch.equal(fresh["prior_goals"], first["prior_goals"])
@@ -127,7 +127,7 @@ def test_collector_priors_match_search_and_survive_reopen(env_id, memories, tmp_
 
 
 def test_same_buffer_memory_grows_between_episodes(tmp_path):
-    rb = TensorDictReplayBuffer(storage=ZarrStorage(tmp_path / "m.zarr", 1000, env="FetchPush-v4"))
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(tmp_path / "m.zarr", 1000, env="FetchPush-v4", sample_tags=True))
     env = make_env("FetchPush-v4", seed=3, max_episode_steps=EP_LEN, transforms=[RecallTransform(rb, K)])
     for ep in range(3):
         before = len(rb)
@@ -149,7 +149,7 @@ def test_same_buffer_memory_grows_between_episodes(tmp_path):
 
 def test_same_buffer_through_collector(tmp_path):
     """The collector's own buffer: an episode recalls what was written before its reset."""
-    storage = ZarrStorage(tmp_path / "m.zarr", 1000, env="FetchPush-v4")
+    storage = ZarrStorage(tmp_path / "m.zarr", 1000, env="FetchPush-v4", sample_tags=True)
     rb = TensorDictReplayBuffer(storage=storage)
     fpb = 2 * EP_LEN
     collector = Collector(
@@ -258,7 +258,7 @@ def test_empty_memory_gives_zeros_and_false_mask(tmp_path, transitions):
 
 
 def test_success_and_env_filters(tmp_path, transitions):
-    storage = ZarrStorage(tmp_path / "m.zarr", 1000, env="FetchPush-v4")
+    storage = ZarrStorage(tmp_path / "m.zarr", 1000, env="FetchPush-v4", sample_tags=True)
     rb = TensorDictReplayBuffer(storage=storage)
     rb.extend(transitions(70))
     storage.env = "FetchSlide-v4"
@@ -308,7 +308,7 @@ def _checked_recall_env(memory, num_envs: int = 1, parallel: bool = False) -> ob
 def test_check_env_specs_single_and_batched(memories, num_envs, parallel):
     # Outside the batched env the transform stays in this process: a storage object is fine,
     # even with ParallelEnv's spawned workers.
-    memory = ZarrStorage(memories["FetchPush-v4"], read_only=True)
+    memory = ZarrStorage(memories["FetchPush-v4"], read_only=True, sample_tags=True)
     env = _checked_recall_env(memory, num_envs, parallel)
     batch = (num_envs,) if num_envs > 1 else ()
     spec = env.observation_spec
@@ -343,7 +343,7 @@ def test_inside_collectors(memories, kind):
     assert data["next", "prior_actions"].shape == (len(data), K, 4)
     assert data["prior_goals_mask"].all()  # each worker opened the store and found rows
     # what the workers recalled is what a search of the same memory here returns
-    memory = ZarrStorage(path, read_only=True)
+    memory = ZarrStorage(path, read_only=True, sample_tags=True)
     _assert_matches_search(data["desired_goal"], data["prior_goals"], data["prior_goals_dist"],
                            data["prior_goals_mask"], memory, "euclidean")
     _, index, _ = GoalIndex(memory).search(data["desired_goal"], K)

@@ -214,11 +214,13 @@ class PackedLayout:
         # commit engine zero-fills them before they reach the disk)
         return torch.empty((*batch_shape, self.row_bytes), dtype=torch.uint8, device=device)
 
-    def views(self, buf: torch.Tensor) -> TensorDictBase:
-        """A TensorDict of strided views of ``buf`` (``[*batch, row_bytes]``), one per leaf."""
+    def views(self, buf: torch.Tensor, skip: tuple = ()) -> TensorDictBase:
+        """A TensorDict of strided views of ``buf`` (``[*batch, row_bytes]``), one per leaf not in ``skip``."""
         batch = buf.shape[:-1]
         source: dict = {}
         for key, (_, off, nbytes, dtype, shape) in zip(self._keys, self.fields):
+            if key in skip:
+                continue
             col = buf[..., off : off + nbytes].view(dtype).view(torch.Size((*batch, *shape)))
             if isinstance(key, str):
                 source[key] = col

@@ -13,8 +13,10 @@ This class composes the package's parts (see :mod:`torchrl_robotmem.storage`);
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import warnings
 import weakref
 from typing import Any
 
@@ -98,6 +100,10 @@ class ZarrStorage(LazyTensorStorage):
         device (str, optional): device of the RAM mirror. Defaults to ``"cpu"``.
         compilable (bool, optional): as in TorchRL (keeps ``len`` in a plain int
             instead of a shared ``mp.Value``). Defaults to ``False``.
+        sample_tags (bool, optional): include the ``episode`` / ``run`` / ``env`` tags in
+            what ``get`` returns (hence in ``rb.sample()``). Defaults to ``False``: a
+            buffer gives back exactly the keys written to it; the tags are always
+            readable as columns (``storage["episode"]``) and through :func:`recall`.
         shared_init (bool, optional): TorchRL's way for several processes to
             write one storage. A store has a single writer process, so ``True`` is
             refused; see "Multi-process use" in ``docs/storage.md`` (a pickled
@@ -142,6 +148,7 @@ class ZarrStorage(LazyTensorStorage):
         device: str = "cpu",
         compilable: bool = False,
         shared_init: bool = False,
+        sample_tags: bool = False,
     ) -> None:
         if isinstance(path, (int, np.integer)) and not isinstance(path, bool):
             raise TypeError(
@@ -172,6 +179,8 @@ class ZarrStorage(LazyTensorStorage):
         self._lock_file = None
         self._closed = False
         self._retired_by: str | None = None
+        # what storage.get() (hence rb.sample()) leaves out: the tags, unless asked for
+        self._hidden = () if sample_tags else TAG_KEYS
         previous = self._claim_writer() if not self.read_only else None
         try:
             self._open(max_size, env=env, ndim=int(ndim), chunk_rows=chunk_rows, device=device,
@@ -207,6 +216,9 @@ class ZarrStorage(LazyTensorStorage):
         self._run: int | None = None  # allocated at the first write
         self._env_code = UNKNOWN_ENV
         self._restored_writers: weakref.WeakSet = weakref.WeakSet()
+        self._warned_items = False
+        self._keep_tags = False
+        self._own_writes = 0  # depth of this class's own writes (see _bump_mutation_revision)
         if max_size is not None and int(max_size) != stored_max:
             self._grow(int(max_size))
         if self._schema is not None:
@@ -301,7 +313,8 @@ class ZarrStorage(LazyTensorStorage):
 
     @property
     def _inner_numel(self) -> int:
-        return math.prod(self._inner_shape) if self._inner_shape else 1
+        """Elements per first-dimension row that count in ``len`` (the dims up to ``ndim``)."""
+        return math.prod(self._inner_shape[: self.ndim - 1]) if self.ndim > 1 else 1
 
     @property
     def _max_dim0(self) -> int:
@@ -403,7 +416,8 @@ class ZarrStorage(LazyTensorStorage):
             # replays): never hand out an id that a stored row already uses.
             self._tagger.next_id = max(self._tagger.next_id, int(self._storage.get("episode")[:n0].max()) + 1)
             self._runs = max(self._runs, int(self._storage.get("run")[:n0].max()) + 1)
-        self._bump_mutation_revision()
+        with self._own_write():
+            self._bump_mutation_revision()
 
     def _allocate(self) -> None:
         """(Re)builds the packed RAM mirror for the current schema, keeping existing rows."""
@@ -431,11 +445,11 @@ class ZarrStorage(LazyTensorStorage):
         with self._engine.cv:
             self._tagger.close_stream()
         self._mark_truncated(torch.tensor([row]))
-        self._engine.kick()
+        self._engine.kick()  # (the revision bump happens inside _mark_truncated)
 
     def _mark_truncated(self, rows: torch.Tensor) -> None:
         """Sets ``("next", "done")`` and ``("next", "truncated")`` on flat ``rows`` (RAM, then disk)."""
-        with lifecycle.critical(), self._engine.cv:
+        with lifecycle.critical(), self._own_write(), self._engine.cv:
             done = self._storage.get(_DONE_KEY)
             flat = done.reshape(-1, *done.shape[self.ndim:]) if self.ndim > 1 else done
             flat[rows] = True
@@ -443,7 +457,8 @@ class ZarrStorage(LazyTensorStorage):
                 trunc = self._storage.get(_TRUNCATED_KEY)
                 (trunc.reshape(-1, *trunc.shape[self.ndim:]) if self.ndim > 1 else trunc)[rows] = True
             self._engine.mark_dirty(torch.div(rows, self._inner_numel, rounding_mode="floor"), self._chunk_rows)
-        self._bump_mutation_revision()
+        with self._own_write():
+            self._bump_mutation_revision()
 
     def _close_open_episodes(self) -> None:
         """Marks the last row of every episode the previous run left open as done/truncated."""
@@ -462,6 +477,8 @@ class ZarrStorage(LazyTensorStorage):
         n0 = self._dim0(n)
         for key in keys:
             col = self._storage.get(key)[:n0]
+            if key in TAG_KEYS:
+                col = self._lead(col)
             out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
         return out
 
@@ -557,7 +574,7 @@ class ZarrStorage(LazyTensorStorage):
             raise
         # A signal arriving from here on is handled once the write is complete
         # (a flush must never see RAM rows that are not marked dirty yet).
-        with lifecycle.critical():
+        with lifecycle.critical(), self._own_write():
             if not self.initialized:
                 self._init_schema(data, _is_int_cursor(cursor))
             elif new_paths:
@@ -572,6 +589,27 @@ class ZarrStorage(LazyTensorStorage):
                     self._writer_cursor = (int(rows[-1]) + 1) % self._max_dim0
                 self._engine.mark_dirty(dirty, self._chunk_rows)
             self._engine.kick()
+
+    @contextlib.contextmanager
+    def _own_write(self):
+        """Marks a write made by this class (its rows are marked dirty where they are written)."""
+        self._own_writes = getattr(self, "_own_writes", 0) + 1
+        try:
+            yield
+        finally:
+            self._own_writes -= 1
+
+    def _bump_mutation_revision(self) -> None:
+        super()._bump_mutation_revision()
+        if getattr(self, "_own_writes", 1) == 0 and getattr(self, "initialized", False) and not self.read_only and not self._closed:
+            # A write that did not go through set(): TorchRL's rb.set_at_ / set_ / update_
+            # write into storage[:] in place and then bump the revision. The rows
+            # touched are unknown here, so every stored row is committed again.
+            n0 = self._len_along_dim0
+            if n0:
+                with self._engine.cv:
+                    self._engine.mark_dirty(slice(0, n0), self._chunk_rows)
+                self._engine.kick()
 
     def _check_writable(self) -> None:
         if self.read_only:
@@ -601,6 +639,8 @@ class ZarrStorage(LazyTensorStorage):
                 raise ValueError("Cannot write an empty TensorDict.")
             data = torch.stack(data, 0) if all(is_tensor_collection(d) for d in data) else _stack_trees(data)
         kind = DataKind.of(data)
+        if getattr(self, "_kind_override", None) is not None:
+            kind = DataKind()  # rows loaded as TensorDicts into a store of another kind
         if self._schema is not None and kind.kind == self._kind.kind and not kind.same_as(self._kind):
             raise ValueError(
                 f"This {kind.kind}'s structure differs from the one the store at {self.path!r} holds "
@@ -618,15 +658,16 @@ class ZarrStorage(LazyTensorStorage):
                 f"ZarrStorage(ndim={self.ndim}) expects data with at least {expected_dims} batch "
                 f"dimension(s); got batch_size {list(td.batch_size)}."
             )
-        if td.batch_dims > expected_dims:
-            if kind.kind == "tensordict" and self.ndim == 1:
-                raise ValueError(
-                    f"ZarrStorage stores flat transitions (batch_size [N]); got a TensorDict with "
-                    f"batch_size {list(td.batch_size)}. Flatten it first: data.reshape(-1) (with a "
-                    f"Collector: postproc=lambda td: td.reshape(-1)), or create the store with ndim="
-                    f"{td.batch_dims} to keep that layout."
-                )
-            td.batch_size = td.batch_size[:expected_dims]
+        if td.batch_dims > expected_dims and kind.kind == "tensordict" and self.ndim == 1 and not self._warned_items:
+            self._warned_items = True
+            warnings.warn(
+                f"ZarrStorage(ndim=1) got a TensorDict with batch_size {list(td.batch_size)}: each of its "
+                f"{td.batch_size[0]} items is stored whole, as LazyTensorStorage does (episode tags are per "
+                f"item). For collector output, one row per transition is usually meant: pass "
+                f"data.reshape(-1) (Collector(..., postproc=lambda td: td.reshape(-1))), or create the "
+                f"store with ndim={td.batch_dims - (0 if single else 0)} for a [num_envs, time] layout.",
+                stacklevel=4,
+            )
         if not isinstance(td, TensorDict) or td.is_locked:
             td = td.to_tensordict() if not isinstance(td, TensorDict) else td.copy()
         else:
@@ -634,46 +675,59 @@ class ZarrStorage(LazyTensorStorage):
         if single:
             td = td.unsqueeze(0)
         inner = tuple(td.batch_size[1:])
-        if self._schema is not None and self.ndim > 1 and inner != self._inner_shape:
+        if self._schema is not None and inner != self._inner_shape:
             raise ValueError(
-                f"ZarrStorage(ndim={self.ndim}) at {self.path!r} holds items of shape "
-                f"{list(self._inner_shape)}; got {list(inner)}."
+                f"The store at {self.path!r} holds items of batch shape {list(self._inner_shape)} "
+                f"(after the first dimension); got {list(inner)}."
             )
         n0 = td.shape[0]
         if n0 == 0:
             raise ValueError("Cannot write an empty TensorDict.")
-        n = n0 * math.prod(inner)
+        lead = td.batch_size[: self.ndim]  # the dims that count in len; tags are per element of these
+        n = lead.numel()
         for key in _DROPPED_KEYS:
             td.pop(key, None)
-        tags = kind.tag_columns
-        env = self._env_column(td, td.batch_size) if tags else None
-        if tags and not set_cursor:
+        tags = kind.tag_columns and (getattr(self, "_kind_override", None) or kind).tag_columns
+        env = self._env_column(td, lead) if tags else None
+        episode = run = None
+        if tags and self._keep_tags:  # rows copied from another store keep their tags
+            episode, run = td.get("episode", None), td.get("run", None)
+        if tags and not set_cursor and episode is None:
             rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
-            if not self.initialized or (rows >= self._len_along_dim0).any():
-                raise ValueError(
-                    "Writing rows that were never appended (set_cursor=False past len) is not "
-                    "supported by ZarrStorage: extend the buffer instead."
-                )
-            episode = td.pop("episode", None)
-            run = td.pop("run", None)
-            if episode is None and "episode" in (self._schema or {}):
-                episode = self._storage.get("episode")[rows]
-                run = self._storage.get("run")[rows]
+            if self.initialized and "episode" in self._schema and bool((rows < self._max_dim0).all()):
+                # in-place writes keep the rows' tags (past len: a placeholder, as the rows are)
+                episode = self._lead(self._storage.get("episode"))[rows]
+                run = self._lead(self._storage.get("run"))[rows]
+            else:
+                episode = torch.full(lead, -1, dtype=torch.long)
+                run = torch.full(lead, -1, dtype=torch.long)
         for key in TAG_KEYS:
             td.pop(key, None)
         new_paths = self._validate(td, single)
         if self._schema is None:
-            self._kind = kind  # recorded with the schema at the first write
+            # recorded with the schema at the first write
+            self._kind = getattr(self, "_kind_override", None) or kind
         if tags:
-            if set_cursor:  # only now, once nothing can fail, draw the episode ids
-                episode = self._episode_column(td, n).reshape(td.batch_size)
-                run = torch.full(td.batch_size, self._current_run(), dtype=torch.long)
-            td.set("episode", torch.as_tensor(episode, dtype=torch.long).reshape(td.batch_size))
-            td.set("run", torch.as_tensor(run, dtype=torch.long).reshape(td.batch_size))
-            td.set("env", env)
+            if episode is None:  # only now, once nothing can fail, draw the episode ids
+                episode = self._episode_column(td, n).reshape(lead)
+                run = torch.full(lead, self._current_run(), dtype=torch.long)
+            td.set("episode", self._expand_tag(episode, lead, td.batch_size))
+            td.set("run", self._expand_tag(run, lead, td.batch_size))
+            td.set("env", self._expand_tag(env, lead, td.batch_size))
         if single:
             td = td[0]
         return td, n, new_paths
+
+    @staticmethod
+    def _expand_tag(value, lead: torch.Size, batch: torch.Size) -> torch.Tensor:
+        value = torch.as_tensor(value, dtype=torch.long).reshape(lead)
+        extra = len(batch) - len(lead)
+        return value.reshape(*lead, *([1] * extra)).expand(batch).clone() if extra else value
+
+    def _lead(self, col: torch.Tensor) -> torch.Tensor:
+        """A tag column without the item dims past ``ndim`` (tags are equal along them)."""
+        extra = len(self._inner_shape) + 1 - self.ndim
+        return col[(..., *([0] * extra))] if extra > 0 else col
 
     def check_schema(self, data: TensorDictBase) -> None:
         """Raises, naming the key, unless ``data`` (batch ``[N]``) could be written to this store.
@@ -688,7 +742,7 @@ class ZarrStorage(LazyTensorStorage):
         fast = self._schema_by_key
         if fast is not None:  # hot path: one dict lookup and two comparisons per leaf
             seen = 0
-            dims = self.ndim
+            dims = 1 + len(self._inner_shape)
             for key, value in data.items(include_nested=True, leaves_only=True):
                 spec = fast.get(key)
                 if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
@@ -705,7 +759,7 @@ class ZarrStorage(LazyTensorStorage):
                 _backend.key_to_path(key)
             return []
         schema = {p: spec for p, spec in self._schema.items() if p not in TAG_KEYS}
-        new, missing = check_against(schema, data, self.ndim, repr(self.path))
+        new, missing = check_against(schema, data, data.batch_dims, repr(self.path))
         if missing:
             raise KeyError(
                 f"The TensorDict does not match the schema of the store at {self.path!r}: missing keys "
@@ -747,7 +801,9 @@ class ZarrStorage(LazyTensorStorage):
         done = data.get(_DONE_KEY, None)
         done = np.zeros(n, dtype=bool) if done is None else done.reshape(n, -1).any(-1).cpu().numpy()
         traj = data.get(_TRAJ_KEY, None)
-        traj = traj.reshape(n).long().cpu().numpy() if traj is not None and traj.numel() == n else None
+        if traj is not None and traj.numel() != n:  # per-step ids of whole stored items: their first
+            traj = traj.reshape(n, -1)[:, 0] if traj.numel() % n == 0 else None
+        traj = traj.reshape(n).long().cpu().numpy() if traj is not None else None
         if self.ndim == 1:
             return self._tagger.assign(done, traj)
         # [items, time...] layouts: each item is its own stream; nothing continues across writes
@@ -815,7 +871,8 @@ class ZarrStorage(LazyTensorStorage):
         with self._engine.cv:
             self._allocate()
         self._group.update_attributes({"schema": self._schema})
-        self._bump_mutation_revision()
+        with self._own_write():
+            self._bump_mutation_revision()
 
     # Kept for LazyTensorStorage: allocation happens in _init_schema.
     def _init(self, data) -> None:
@@ -824,7 +881,7 @@ class ZarrStorage(LazyTensorStorage):
 
     def _empty(self) -> None:
         self._check_writable()
-        with lifecycle.critical(), self._engine.cv:
+        with lifecycle.critical(), self._own_write(), self._engine.cv:
             super()._empty()
             self._writer_cursor = 0
             self._write_count = 0  # as TorchRL's writer restarts its count
@@ -844,7 +901,7 @@ class ZarrStorage(LazyTensorStorage):
         if isinstance(index, list):
             index = torch.as_tensor(index)
         packed = self._packed if self._is_full else self._packed[: self._len_along_dim0]
-        return self._kind.from_tensordict(self._layout.views(packed[index]))
+        return self._kind.from_tensordict(self._layout.views(packed[index], self._hidden))
 
     def _copy_chunk(self, c: int) -> dict[str, np.ndarray]:
         """The rows of chunk ``c`` of every array, zero-filled past ``len`` (for the commit engine)."""
@@ -963,7 +1020,8 @@ class ZarrStorage(LazyTensorStorage):
         :class:`~torchrl.data.LazyTensorStorage` can load this state too.
         """
         self.flush()
-        rows = self._storage.state_dict() if self.initialized else {}
+        rows = self._storage.exclude(*TAG_KEYS).state_dict() if self.initialized else {}
+        tags = self._storage.select(*TAG_KEYS, strict=False).state_dict() if self.initialized else {}
         return {
             "_storage": rows,
             "initialized": self.initialized,
@@ -975,49 +1033,69 @@ class ZarrStorage(LazyTensorStorage):
                 "env_names": list(self._env_names),
                 "kind": self._kind.to_json(),
                 "ndim": self.ndim,
+                "tags": tags,
             },
         }
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        """Loads rows from another storage's ``state_dict`` (this store's own: only the writer position).
+        """Loads another storage's ``state_dict`` (this store's own: only the writer position).
 
-        Rows from another store (or a TorchRL storage) are written into this one
-        as a new run, replacing what it held.
+        Rows from another store, or from a TorchRL storage, replace what this
+        store held; rows from another ``ZarrStorage`` keep their episode / run /
+        env tags.
         """
         meta = state_dict.get("zarr") or {}
         if meta.get("store") is not None and meta.get("store") == self.path:
             self._restore_writers(force=True)
+            with self._own_write():
+                self._bump_mutation_revision()
             return
         self._check_writable()
-        source = state_dict.get("_storage")
         n = int(state_dict.get("_len", 0))
-        if isinstance(source, torch.Tensor):
-            source = TensorDict({DataKind.TENSOR_KEY: source}, batch_size=source.shape[:1])
-        elif isinstance(source, dict):
-            source = TensorDict().load_state_dict(source, strict=False)
-            source.batch_size = source.batch_size if source.batch_dims else _leading(source)
-        if self.initialized:
+        rows = _rows_of_state(state_dict.get("_storage"))
+        if self.initialized and len(self):
             self._empty()
-        if n:
-            rows = source[: -(-n // max(1, math.prod(source.shape[1:self.ndim])))]
-            names = meta.get("env_names")
-            if not names:  # tags from a storage that did not write them: tag afresh
-                rows = rows.exclude(*TAG_KEYS)
-            elif "env" in rows.keys():
-                codes = rows.get("env")
-                table = torch.tensor([self.env_code(x, create=True) for x in names] + [UNKNOWN_ENV])
-                rows.set("env", table[codes.clamp(min=-1)])
-            kind = DataKind.from_json(meta.get("kind")) if meta else DataKind()
-            data = kind.from_tensordict(rows) if kind.kind != "tensordict" else rows
-            n0 = rows.shape[0]
-            self.set(torch.arange(n0), data)
-            writer_cursor = int(meta.get("cursor", n0 % self._max_dim0)) % self._max_dim0
-            self._writer_cursor = writer_cursor
+        if n and rows is not None:
+            n0 = -(-n // max(1, math.prod(rows.shape[1 : self.ndim])))
+            rows = rows[:n0]
+            tags = meta.get("tags") or None
+            if tags is not None:
+                tags = TensorDict().load_state_dict(tags, strict=False)
+                tags.batch_size = _leading(tags)
+                rows = rows.clone(False)
+                rows.update(tags[:n0])
+                table = torch.tensor([self.env_code(x, create=True) for x in meta.get("env_names", [])] + [-1])
+                rows.set("env", table[rows.get("env").clamp(min=-1)])
+            kind = DataKind.from_json(meta.get("kind")) if meta.get("kind") else None
+            if kind is not None and kind.kind != "tensordict" and self._schema is None:
+                self._kind = kind  # written as a TensorDict, read back as the source's kind
+            self._keep_tags = tags is not None
+            try:
+                self._write_rows(torch.arange(n0), rows)
+            finally:
+                self._keep_tags = False
+            self._writer_cursor = int(meta.get("cursor", n0 % self._max_dim0)) % self._max_dim0
             self._write_count = int(meta.get("write_count", n0))
+            if tags is not None:
+                self._tagger.next_id = max(self._tagger.next_id, int(rows.get("episode").max()) + 1)
+                self._runs = max(self._runs, int(rows.get("run").max()) + 1)
             with self._engine.cv:
                 self._engine.mark_meta_dirty()
         self._restore_writers(force=True)
+        with self._own_write():
+            self._bump_mutation_revision()
         self.flush()
+
+    def _write_rows(self, cursor: torch.Tensor, rows: TensorDictBase) -> None:
+        """Writes TensorDict rows whatever the store's data kind (for loads)."""
+        kind = self._kind
+        try:
+            self._kind = DataKind()
+            self._kind_override = kind
+            self.set(cursor, rows)
+        finally:
+            self._kind = kind
+            self._kind_override = None
 
     def __reduce__(self):
         """Pickling gives a read-only handle on the same store in the receiving process.
@@ -1081,6 +1159,20 @@ def _library_version() -> str:
     from .. import __version__
 
     return __version__
+
+
+def _rows_of_state(source: Any) -> TensorDictBase | None:
+    """The rows of a TorchRL storage ``state_dict()["_storage"]`` as a TensorDict."""
+    if source is None or (isinstance(source, dict) and not source):
+        return None
+    if isinstance(source, torch.Tensor):
+        return TensorDict({DataKind.TENSOR_KEY: source}, batch_size=source.shape[:1])
+    if isinstance(source, TensorDictBase):
+        return source
+    rows = TensorDict().load_state_dict(source, strict=False)
+    if not rows.batch_dims:
+        rows.batch_size = _leading(rows)
+    return rows
 
 
 def _leading(td: TensorDictBase) -> torch.Size:
