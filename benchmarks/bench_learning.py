@@ -210,8 +210,9 @@ def budget(cpu_s: int, envs: list[str]) -> None:
 def random_success(env_id: str, episodes: int = 100) -> float:
     """Success (is_success at the last step) of a uniform-random policy."""
     sys.path.insert(0, str(RECIPE.parent))
-    import utils  # noqa: F401  (silences the gymnasium-robotics import notice)
     import torch
+    import utils  # noqa: F401  (silences the gymnasium-robotics import notice)
+
     from torchrl_robotmem import make_env
 
     env = make_env(env_id, num_envs=10, seed=12345)

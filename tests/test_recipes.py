@@ -69,9 +69,11 @@ def test_resume_appends_to_the_memory(tmp_path):
     first = run_recipe(tmp_path, f"memory.path={mem}", out="run1")
     with ZarrStorage(mem, read_only=True) as store:
         before = store[:50]["next", "achieved_goal"].clone()
-    # second run: launched from another directory (hydra chdir), relative path, fresh networks
+    # second run: relative path (hydra changes directory), fresh networks, and the
+    # memory switches on: the goal sampler and the recall transform over the reopened store
     second = run_recipe(
-        tmp_path, "memory.path=mem.zarr", "collector.total_frames=25", out="run2"
+        tmp_path, "memory.path=mem.zarr", "collector.total_frames=25",
+        "replay_buffer.sampler.enabled=true", "memory.recall.enabled=true", out="run2",
     )
     assert first["memory_rows_before"] == 0
     assert second["memory_rows_before"] == 50 and second["memory_rows_after"] == 75
@@ -80,10 +82,11 @@ def test_resume_appends_to_the_memory(tmp_path):
     with ZarrStorage(mem, read_only=True) as store:
         assert len(store) == 75
         assert torch.equal(store[:50]["next", "achieved_goal"], before)  # appended after, not over
-        runs = store[:75]["run"]
+        runs = store["run"][:75]
         assert runs[:50].unique().numel() == 1 and (runs[50:] > runs[0]).all()
+        assert "prior_goals" not in store[:1].keys()  # recalled at sampling time, never stored
     third = run_recipe(tmp_path, "memory.path=mem.zarr", "memory.resume_agent=true",
-                       "collector.total_frames=25", out="run3")
+                       "collector.total_frames=25", "memory.recall.enabled=true", out="run3")
     assert "agent resumed from checkpoint" in third["stdout"]
     assert third["memory_rows_before"] == 75
 
@@ -95,14 +98,6 @@ def test_lazy_tensor_storage_through_the_config(tmp_path):
     )
     assert s["memory_rows_after"] == 50
     assert not (tmp_path / "never.zarr").exists()
-
-
-def test_goal_sampler_and_recall_switches(tmp_path):
-    s = run_recipe(
-        tmp_path, "replay_buffer.sampler.enabled=true", "memory.recall.enabled=true",
-        f"memory.path={tmp_path / 'mem.zarr'}",
-    )
-    assert s["updates"] > 0 and s["memory_rows_after"] == 50
 
 
 @pytest.mark.parametrize("group", sorted(ENV_GROUPS))

@@ -27,14 +27,13 @@ import torch
 import tqdm
 from hydra.utils import to_absolute_path
 from tensordict import TensorDict
-from torchrl.checkpoint import Checkpoint
+from torchrl.checkpoint import Checkpoint, CheckpointError
 from torchrl.record.loggers import generate_exp_name, get_logger
 from utils import (
     RECALL_KEYS,
     CpuClock,
-    append_history,
-    read_history,
     GoalNormalizer,
+    append_history,
     current_goals,
     evaluate,
     loss_keys,
@@ -47,6 +46,7 @@ from utils import (
     make_sampler,
     make_storage,
     plot_success,
+    read_history,
     refresh_recall,
 )
 
@@ -91,7 +91,14 @@ def main(cfg: DictConfig):  # noqa: F821
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
     resumed = bool(cfg.memory.resume_agent) and Checkpoint.is_checkpoint(checkpoint_path)
     if resumed:
-        checkpoint.load(checkpoint_path)
+        try:
+            checkpoint.load(checkpoint_path)
+        except CheckpointError as err:
+            raise RuntimeError(
+                f"the agent checkpoint {checkpoint_path} does not fit this agent (saved with other "
+                "algo / network / memory.recall settings?). Use the settings it was saved with, "
+                "or start fresh networks on the memory with memory.resume_agent=false."
+            ) from err
     elif remembered:
         normalizer.update(replay_buffer[:])  # fresh networks: statistics of the whole memory
     keys = loss_keys(cfg)

@@ -9,21 +9,9 @@ from __future__ import annotations
 import contextlib
 import inspect
 import json
+import logging
 import time
 import warnings
-
-# gymnasium-robotics prints an Adroit reward notice to stderr on every import
-# (through farama_notifications): drop it before anything imports the package.
-try:
-    import farama_notifications
-
-    farama_notifications.notifications.pop("gymnasium_robotics", None)
-except ImportError:  # pragma: no cover
-    pass
-warnings.filterwarnings("ignore", category=DeprecationWarning)
-import logging
-
-logging.getLogger("matplotlib").setLevel(logging.WARNING)
 
 import torch
 from hydra.utils import get_class, instantiate
@@ -47,6 +35,17 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss, group_optimizers
 
 from torchrl_robotmem import make_env, make_reward_fn
+
+# gymnasium-robotics prints an Adroit reward notice to stderr on every import
+# (through farama_notifications); nothing above imports it, so drop it here.
+try:
+    import farama_notifications
+
+    farama_notifications.notifications.pop("gymnasium_robotics", None)
+except ImportError:  # pragma: no cover
+    pass
+warnings.filterwarnings("ignore", category=DeprecationWarning)
+logging.getLogger("matplotlib").setLevel(logging.WARNING)
 
 # The keys the recall transform adds; recomputed after every sample (HER
 # replaces the goal they were recalled for), so never stored.
