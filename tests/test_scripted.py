@@ -33,10 +33,10 @@ def test_controller_writes_memory_and_recall_returns_params(task, tmp_path):
         assert len(st) == 100 and st.env_names == (TASKS[task],)
         index = episode_index(st, ("geometry", "distance"))
         for e in range(2):
-            first = st[e * 50]
             expected = noisy_params(task, 1.0, np.random.default_rng([3, e]))
-            rows = recall_episodes(index, first["geometry", "distance"], 1, success_only=False, env=TASKS[task])
-            assert rows.shape == (1,) and int(rows["episode"][0]) == int(first["episode"])
+            query = st[("geometry", "distance")][e * 50]
+            rows = recall_episodes(index, query, 1, success_only=False, env=TASKS[task])
+            assert rows.shape == (1,) and int(rows["episode"][0]) == int(st["episode"][e * 50])
             got = mean_params(rows, param_names(task))
             for name in param_names(task):
                 assert got[name] == pytest.approx(getattr(expected, name), abs=1e-6)

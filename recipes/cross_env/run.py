@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+from tensordict import TensorDict
 
 from recipes.scripted.collect import DISTANCE_SCALE, collect, episode_geometry, gym_episodes, kv_args, open_memory
 from recipes.scripted.controllers import StrikeParams, default_params
@@ -114,9 +115,12 @@ def make_arms(storage, baseline: StrikeParams, k: int) -> dict[str, ParamFn]:
         return baseline if means is None else dataclasses.replace(baseline, **means)
 
     def successes(env: str):
-        rows = storage[: len(storage)]
-        keep = (rows[SUCCESS_KEY] > 0.5) & (rows["env"] == storage.env_code(env)) & (rows["step_count"].reshape(-1) == 0)
-        return rows[keep]
+        # first row of each successful episode of ``env``; columns read one by one, since
+        # a ZarrStorage's row reads leave out its tags (env, episode, run) by default
+        keep = ((storage[SUCCESS_KEY] > 0.5) & (storage["env"] == storage.env_code(env))
+                & (storage["step_count"].reshape(-1) == 0))
+        rows = torch.nonzero(keep).reshape(-1)
+        return TensorDict({("params", n): storage[("params", n)][rows] for n in names}, [rows.numel()])
 
     push_mean = apply(mean_params(successes(PUSH), names))
     slide_rows = successes(SLIDE)
