@@ -89,7 +89,10 @@ class DataKind:
         if self.kind == "tensor":
             return TensorDict({self.TENSOR_KEY: data}, batch_size=data.shape[:batch_dims])
         if self.kind == "tensorclass":
-            return data._tensordict if hasattr(data, "_tensordict") else data.to_tensordict()
+            td = getattr(data, "_tensordict", None)
+            if td is None or any(is_tensor_collection(v) and not isinstance(v, TensorDictBase) for v in td.values()):
+                td = data.to_tensordict()  # nested tensorclasses become TensorDicts
+            return td
         leaves, spec = tree_flatten(data)
         if treespec_dumps(spec) != self.meta["treespec"]:
             raise ValueError(

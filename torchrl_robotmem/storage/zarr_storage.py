@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 import torchrl
-from tensordict import TensorDict, TensorDictBase, is_tensor_collection
+from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase, is_tensor_collection
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
@@ -581,7 +581,9 @@ class ZarrStorage(LazyTensorStorage):
                 self._evolve_schema(data, new_paths, _is_int_cursor(cursor))
             rows = dirty = _cursor_rows(cursor, self._max_dim0)
             if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
-                cursor = dirty = slice(int(rows[0]), int(rows[-1]) + 1)  # a view copy: ~2x an index_put
+                dirty = slice(int(rows[0]), int(rows[-1]) + 1)
+                if not isinstance(cursor, tuple) and not isinstance(data, LazyStackedTensorDict):
+                    cursor = dirty  # a view copy: ~2x an index_put
             with self._engine.cv:
                 super().set(cursor, data, set_cursor=set_cursor)
                 if set_cursor:
@@ -637,7 +639,14 @@ class ZarrStorage(LazyTensorStorage):
         if isinstance(data, list):
             if not data:
                 raise ValueError("Cannot write an empty TensorDict.")
-            data = torch.stack(data, 0) if all(is_tensor_collection(d) for d in data) else _stack_trees(data)
+            try:
+                data = torch.stack(data, 0) if all(is_tensor_collection(d) for d in data) else _stack_trees(data)
+            except Exception as err:  # TorchRL's wording, so callers can match it
+                raise RuntimeError(
+                    f"Stacking the elements of the list resulted in an error ({err}). ZarrStorage expects all "
+                    f"elements of the list to have the same structure and shapes (a list passed to extend is "
+                    f"one item per element)."
+                ) from err
         kind = DataKind.of(data)
         if getattr(self, "_kind_override", None) is not None:
             kind = DataKind()  # rows loaded as TensorDicts into a store of another kind
@@ -668,14 +677,19 @@ class ZarrStorage(LazyTensorStorage):
                 f"store with ndim={td.batch_dims - (0 if single else 0)} for a [num_envs, time] layout.",
                 stacklevel=4,
             )
-        if not isinstance(td, TensorDict) or td.is_locked:
-            td = td.to_tensordict() if not isinstance(td, TensorDict) else td.copy()
+        if isinstance(td, LazyStackedTensorDict) and td.stack_dim == 0 and not td.is_locked and not single:
+            td = td.copy()  # kept lazy: TorchRL writes each stacked TensorDict in place (update_at_)
+        elif not isinstance(td, TensorDict) or td.is_locked:
+            td = td.to_tensordict()
         else:
             td = td.copy()  # shallow: tags must not leak into the caller's TensorDict
         if single:
             td = td.unsqueeze(0)
+        multi = isinstance(cursor, tuple)  # an element-wise write into a multi-dim storage
+        if multi and set_cursor:
+            raise ValueError("ZarrStorage appends along the first dimension only; tuple cursors are for in-place writes.")
         inner = tuple(td.batch_size[1:])
-        if self._schema is not None and inner != self._inner_shape:
+        if self._schema is not None and inner != self._inner_shape and not multi:
             raise ValueError(
                 f"The store at {self.path!r} holds items of batch shape {list(self._inner_shape)} "
                 f"(after the first dimension); got {list(inner)}."
@@ -683,7 +697,8 @@ class ZarrStorage(LazyTensorStorage):
         n0 = td.shape[0]
         if n0 == 0:
             raise ValueError("Cannot write an empty TensorDict.")
-        lead = td.batch_size[: self.ndim]  # the dims that count in len; tags are per element of these
+        # the dims that count in len; tags are per element of these
+        lead = td.batch_size if multi else td.batch_size[: self.ndim]
         n = lead.numel()
         for key in _DROPPED_KEYS:
             td.pop(key, None)
@@ -694,7 +709,11 @@ class ZarrStorage(LazyTensorStorage):
             episode, run = td.get("episode", None), td.get("run", None)
         if tags and not set_cursor and episode is None:
             rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
-            if self.initialized and "episode" in self._schema and bool((rows < self._max_dim0).all()):
+            if multi and self.initialized and "episode" in self._schema:
+                episode = self._storage.get("episode")[cursor].reshape(lead)
+                run = self._storage.get("run")[cursor].reshape(lead)
+                env = self._storage.get("env")[cursor].reshape(lead) if td.get("env", None) is None else env
+            elif self.initialized and "episode" in self._schema and bool((rows < self._max_dim0).all()):
                 # in-place writes keep the rows' tags (past len: a placeholder, as the rows are)
                 episode = self._lead(self._storage.get("episode"))[rows]
                 run = self._lead(self._storage.get("run"))[rows]
@@ -1194,6 +1213,11 @@ def _is_int_cursor(cursor) -> bool:
 
 
 def _cursor_rows(cursor, max_size: int) -> torch.Tensor:
+    """The first-dimension rows a cursor touches (a tuple cursor indexes several dims)."""
+    if isinstance(cursor, tuple):
+        first = cursor[0] if cursor else slice(None)
+        rows = _cursor_rows(first, max_size)
+        return rows.unique() if rows.numel() > 1 else rows
     if _is_int_cursor(cursor):
         return torch.tensor([int(cursor)], dtype=torch.long)
     if isinstance(cursor, slice):
