@@ -47,6 +47,7 @@ def test_doc_page_snippets_run(page, tmp_path, monkeypatch):
 
 # script -> arguments that keep it to a few seconds
 EXAMPLES = {
+    "grow_memory.py": ["--episodes", "2", "--path", "{tmp}/grow.zarr"],
     "quickstart.py": ["--steps", "150", "--path", "{tmp}/pp.zarr"],
     "recall_in_collector.py": ["--episodes", "4", "--path", "{tmp}/fp.zarr"],
     "shadow_hand.py": ["--episodes", "3", "--path", "{tmp}/hand.zarr"],
@@ -55,8 +56,7 @@ EXAMPLES = {
 
 def test_every_example_is_exercised():
     scripts = {p.name for p in (ROOT / "examples").glob("*.py")}
-    # demo.py is `make demo`'s job and has its own test with the recipe
-    assert scripts - {"demo.py"} == set(EXAMPLES), "add the new example to EXAMPLES"
+    assert scripts == set(EXAMPLES), "add the new example to EXAMPLES"
 
 
 @pytest.mark.parametrize("script", sorted(EXAMPLES))

@@ -1,4 +1,4 @@
-"""The main job of ``make demo``: grow a persistent FetchPush memory with a TorchRL collector.
+"""Grow a persistent FetchPush memory with a TorchRL collector (random policy).
 
 Every run collects episodes of ``FetchPush-v4`` with a random policy through a
 TorchRL ``Collector`` into a ``TensorDictReplayBuffer`` whose storage is a
@@ -6,7 +6,7 @@ TorchRL ``Collector`` into a ``TensorDictReplayBuffer`` whose storage is a
 it twice: the second run appends to the first run's memory (new ``run`` id,
 episode ids continue), it does not start from nothing.
 
-    python examples/demo.py --episodes 20 --path memory/fetchpush.zarr
+    python examples/grow_memory.py --episodes 20 --path memory/fetchpush.zarr
 """
 from __future__ import annotations
 
