@@ -200,7 +200,7 @@ class Tracker:
 
     def _check_rows(self, st: ZarrStorage, n: int, W: int) -> None:
         M = self.max_size
-        td = st[:n]
+        td = st[:n].update({k: st[k][:n] for k in ("episode", "run", "env")})  # tags are columns
         w = -td["action"][:, 0]
         r = torch.arange(n)
         # Slot r holds the last write number < W that maps to it: no torn rows, no rows

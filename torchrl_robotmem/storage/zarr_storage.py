@@ -414,16 +414,19 @@ class ZarrStorage(LazyTensorStorage):
         if n and "episode" in self._schema:
             # Rows past the committed metadata may survive a crash (journal
             # replays): never hand out an id that a stored row already uses.
-            self._tagger.next_id = max(self._tagger.next_id, int(self._storage.get("episode")[:n0].max()) + 1)
-            self._runs = max(self._runs, int(self._storage.get("run")[:n0].max()) + 1)
+            self._tagger.next_id = max(self._tagger.next_id, int(self._views.get("episode")[:n0].max()) + 1)
+            self._runs = max(self._runs, int(self._views.get("run")[:n0].max()) + 1)
         with self._own_write():
             self._bump_mutation_revision()
 
     def _allocate(self) -> None:
         """(Re)builds the packed RAM mirror for the current schema, keeping existing rows."""
-        old = self._storage if self.initialized else None
+        old = self._views if self.initialized else None
         self._packed = self._layout.allocate((self._max_dim0, *self._inner_shape), self.device)
-        self._storage = self._layout.views(self._packed)
+        self._views = self._layout.views(self._packed)
+        # what TorchRL sees as the storage: the data as the user wrote it (a TensorDict of
+        # views, the tensor column, or the tensorclass / pytree built on the views)
+        self._storage = self._kind.from_tensordict(self._views.exclude(*TAG_KEYS) if self._kind.kind != "tensordict" else self._views)
         self.__dict__.pop("_total_shape_value", None)  # TorchRL caches the storage shape
         if old is not None:
             n0 = self._dim0(len(self))
@@ -431,12 +434,12 @@ class ZarrStorage(LazyTensorStorage):
                 key = _backend.path_to_key(path)
                 col = old.get(key, None)
                 if col is not None:
-                    self._storage.get(key)[:n0] = col[:n0]
+                    self._views.get(key)[:n0] = col[:n0]
                 else:
-                    self._storage.get(key)[:n0] = 0
+                    self._views.get(key)[:n0] = 0
 
     def _column(self, path: str) -> torch.Tensor:
-        return self._storage.get(_backend.path_to_key(path))
+        return self._views.get(_backend.path_to_key(path))
 
     # -- episodes ----------------------------------------------------------------------------
 
@@ -450,11 +453,11 @@ class ZarrStorage(LazyTensorStorage):
     def _mark_truncated(self, rows: torch.Tensor) -> None:
         """Sets ``("next", "done")`` and ``("next", "truncated")`` on flat ``rows`` (RAM, then disk)."""
         with lifecycle.critical(), self._own_write(), self._engine.cv:
-            done = self._storage.get(_DONE_KEY)
+            done = self._views.get(_DONE_KEY)
             flat = done.reshape(-1, *done.shape[self.ndim:]) if self.ndim > 1 else done
             flat[rows] = True
-            if _TRUNCATED_KEY in self._storage.keys(True, True):
-                trunc = self._storage.get(_TRUNCATED_KEY)
+            if _TRUNCATED_KEY in self._views.keys(True, True):
+                trunc = self._views.get(_TRUNCATED_KEY)
                 (trunc.reshape(-1, *trunc.shape[self.ndim:]) if self.ndim > 1 else trunc)[rows] = True
             self._engine.mark_dirty(torch.div(rows, self._inner_numel, rounding_mode="floor"), self._chunk_rows)
         with self._own_write():
@@ -463,7 +466,7 @@ class ZarrStorage(LazyTensorStorage):
     def _close_open_episodes(self) -> None:
         """Marks the last row of every episode the previous run left open as done/truncated."""
         n = len(self)
-        if n == 0 or _DONE_KEY not in self._storage.keys(True, True) or "episode" not in self._schema:
+        if n == 0 or _DONE_KEY not in self._views.keys(True, True) or "episode" not in self._schema:
             return
         flat = self._flat_columns(("run", "episode", _DONE_KEY), n)
         done = flat[_DONE_KEY].reshape(n, -1).any(-1)
@@ -476,7 +479,7 @@ class ZarrStorage(LazyTensorStorage):
         out = {}
         n0 = self._dim0(n)
         for key in keys:
-            col = self._storage.get(key)[:n0]
+            col = self._views.get(key)[:n0]
             if key in TAG_KEYS:
                 col = self._lead(col)
             out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
@@ -585,7 +588,7 @@ class ZarrStorage(LazyTensorStorage):
                 if not isinstance(cursor, tuple) and not isinstance(data, LazyStackedTensorDict):
                     cursor = dirty  # a view copy: ~2x an index_put
             with self._engine.cv:
-                super().set(cursor, data, set_cursor=set_cursor)
+                self._write_ram(cursor, data, set_cursor)
                 if set_cursor:
                     self._write_count += n
                     self._writer_cursor = (int(rows[-1]) + 1) % self._max_dim0
@@ -612,6 +615,17 @@ class ZarrStorage(LazyTensorStorage):
                 with self._engine.cv:
                     self._engine.mark_dirty(slice(0, n0), self._chunk_rows)
                 self._engine.kick()
+
+    def _write_ram(self, cursor, data: TensorDictBase, set_cursor: bool) -> None:
+        """TensorStorage.set on the RAM mirror (``data`` is the prepared TensorDict)."""
+        if set_cursor:
+            self._set_last_cursor(cursor)
+            self._get_new_len(data, cursor)
+        if isinstance(data, LazyStackedTensorDict) and data.stack_dim == 0:
+            self._views.update_at_(data, cursor)  # each stacked TensorDict written in place
+        else:
+            self._views[cursor] = data
+        self._bump_mutation_revision()
 
     def _check_writable(self) -> None:
         if self.read_only:
@@ -710,13 +724,13 @@ class ZarrStorage(LazyTensorStorage):
         if tags and not set_cursor and episode is None:
             rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
             if multi and self.initialized and "episode" in self._schema:
-                episode = self._storage.get("episode")[cursor].reshape(lead)
-                run = self._storage.get("run")[cursor].reshape(lead)
-                env = self._storage.get("env")[cursor].reshape(lead) if td.get("env", None) is None else env
+                episode = self._views.get("episode")[cursor].reshape(lead)
+                run = self._views.get("run")[cursor].reshape(lead)
+                env = self._views.get("env")[cursor].reshape(lead) if td.get("env", None) is None else env
             elif self.initialized and "episode" in self._schema and bool((rows < self._max_dim0).all()):
                 # in-place writes keep the rows' tags (past len: a placeholder, as the rows are)
-                episode = self._lead(self._storage.get("episode"))[rows]
-                run = self._lead(self._storage.get("run"))[rows]
+                episode = self._lead(self._views.get("episode"))[rows]
+                run = self._lead(self._views.get("run"))[rows]
             else:
                 episode = torch.full(lead, -1, dtype=torch.long)
                 run = torch.full(lead, -1, dtype=torch.long)
@@ -896,7 +910,9 @@ class ZarrStorage(LazyTensorStorage):
     # Kept for LazyTensorStorage: allocation happens in _init_schema.
     def _init(self, data) -> None:
         if not self.initialized:
-            self._init_schema(data, True)
+            kind = DataKind.of(data)
+            self._kind = kind
+            self._init_schema(kind.to_tensordict(data, self.ndim - 1), True)
 
     def _empty(self) -> None:
         self._check_writable()
@@ -915,7 +931,7 @@ class ZarrStorage(LazyTensorStorage):
         if not self.initialized:
             raise RuntimeError("Cannot get elements out of a non-initialized storage.")
         if isinstance(index, str) or (isinstance(index, tuple) and index and all(isinstance(i, str) for i in index)):
-            rows = self._storage if self._is_full else self._storage[: self._len_along_dim0]
+            rows = self._views if self._is_full else self._views[: self._len_along_dim0]
             return rows[index]  # a column, as LazyTensorStorage gives it
         if isinstance(index, list):
             index = torch.as_tensor(index)
@@ -1039,8 +1055,8 @@ class ZarrStorage(LazyTensorStorage):
         :class:`~torchrl.data.LazyTensorStorage` can load this state too.
         """
         self.flush()
-        rows = self._storage.exclude(*TAG_KEYS).state_dict() if self.initialized else {}
-        tags = self._storage.select(*TAG_KEYS, strict=False).state_dict() if self.initialized else {}
+        rows = self._views.exclude(*TAG_KEYS).state_dict() if self.initialized else {}
+        tags = self._views.select(*TAG_KEYS, strict=False).state_dict() if self.initialized else {}
         return {
             "_storage": rows,
             "initialized": self.initialized,
@@ -1139,7 +1155,7 @@ class ZarrStorage(LazyTensorStorage):
         """
         n = len(self)
         out: dict[str, Any] = {"path": self.path, "rows": n, "max_size": self.max_size}
-        keys = set(self._storage.keys(True, True)) if self.initialized else set()
+        keys = set(self._views.keys(True, True)) if self.initialized else set()
         if n and "episode" in keys:
             cols = self._flat_columns(
                 [k for k in ("episode", "run", ("next", "is_success"), _DONE_KEY) if k in keys], n
