@@ -66,6 +66,7 @@ class CommitEngine:
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.committed_len = 0  # committed length (transitions)
+        self.release_gil_codec = True  # set by the owner from its codec
 
     # -- bookkeeping (called under ``cv``) ----------------------------------------
 
@@ -92,15 +93,21 @@ class CommitEngine:
 
     # -- the writer thread ----------------------------------------------------------
 
-    def kick(self) -> None:
-        """Wakes the writer (or, without a background thread, commits now)."""
+    def kick(self, notify: bool = True) -> None:
+        """Wakes the writer (or, without a background thread, commits now).
+
+        ``notify=False`` only makes sure the thread runs: a running writer
+        commits on its own timer, and waking it on every write costs the
+        foreground a GIL hand-over each time.
+        """
         if not self.background:
             self._commit(everything=True)
             return
         with self.cv:
             if self.thread is None:
                 self._start_thread()
-            self.cv.notify_all()
+            elif notify:
+                self.cv.notify_all()
 
     def _start_thread(self) -> None:
         self.thread = threading.Thread(target=self._loop, name=f"ZarrStorage-writer({self.name})", daemon=True)
@@ -127,8 +134,12 @@ class CommitEngine:
                     if flush or timer:
                         break
                     if self._complete_chunks():
-                        # Complete chunks wait for a pause in the writes (the timer
-                        # still bounds the wait).
+                        # Complete chunks are written at once: Blosc compresses them
+                        # without the GIL, beside the foreground's writes.
+                        if self.release_gil_codec:
+                            break
+                        # A codec that holds the GIL (plain zstd) waits for a pause in
+                        # the writes instead (the timer still bounds the wait).
                         idle = time.monotonic() - self.last_set_time
                         if idle >= _IDLE_GAP:
                             break

@@ -211,6 +211,7 @@ class ZarrStorage(LazyTensorStorage):
         super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
         self._engine = CommitEngine(self, self._group, commit_interval=commit_interval, background=background,
                                     name=str(self.path))
+        self._engine.release_gil_codec = self._compressor in ("blosc", None, "none")
         self._sync_attrs(attrs)
         # This session's state.
         self._run: int | None = None  # allocated at the first write
@@ -424,6 +425,7 @@ class ZarrStorage(LazyTensorStorage):
         old = self._views if self.initialized else None
         self._packed = self._layout.allocate((self._max_dim0, *self._inner_shape), self.device)
         self._views = self._layout.views(self._packed)
+        self._columns = dict(self._views.items(include_nested=True, leaves_only=True))
         # what TorchRL sees as the storage: the data as the user wrote it (a TensorDict of
         # views, the tensor column, or the tensorclass / pytree built on the views)
         self._storage = self._kind.from_tensordict(self._views.exclude(*TAG_KEYS) if self._kind.kind != "tensordict" else self._views)
@@ -593,7 +595,10 @@ class ZarrStorage(LazyTensorStorage):
                     self._write_count += n
                     self._writer_cursor = (int(rows[-1]) + 1) % self._max_dim0
                 self._engine.mark_dirty(dirty, self._chunk_rows)
-            self._engine.kick()
+            # wake the writer only if a chunk just became complete (its timer covers the rest)
+            last = int(rows[-1])
+            self._engine.kick(notify=(last + 1) % self._chunk_rows == 0 or len(rows) > self._chunk_rows
+                              or int(rows[0]) // self._chunk_rows != last // self._chunk_rows)
 
     @contextlib.contextmanager
     def _own_write(self):
@@ -623,6 +628,11 @@ class ZarrStorage(LazyTensorStorage):
             self._get_new_len(data, cursor)
         if isinstance(data, LazyStackedTensorDict) and data.stack_dim == 0:
             self._views.update_at_(data, cursor)  # each stacked TensorDict written in place
+        elif isinstance(cursor, slice) and isinstance(data, TensorDict):
+            # hot path (appends): one copy per leaf into its column, no TensorDict machinery
+            cols = self._columns
+            for key, value in data.items(include_nested=True, leaves_only=True):
+                cols[key][cursor].copy_(value)
         else:
             self._views[cursor] = data
         self._bump_mutation_revision()
