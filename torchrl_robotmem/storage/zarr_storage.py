@@ -88,8 +88,8 @@ class ZarrStorage(LazyTensorStorage):
             Fixed when the store is created. Defaults to 1.
         chunk_rows (int, optional): rows (along the first dimension) per Zarr
             chunk. Defaults to about 4 MiB of data per chunk, capped at ``max_size``.
-        compressor (str, optional): ``"blosc"`` (the default: zstd behind a byte
-            shuffle, compressed without holding the GIL), ``"zstd"`` or ``None``.
+        compressor (str, optional): ``"zstd"`` (the default), ``"blosc"`` (zstd behind
+            a byte shuffle) or ``None``.
         compression_level (int, optional): codec level. Defaults to 1.
         commit_interval (float, optional): seconds after which written rows are
             committed even if their chunk is not full. This bounds what a crash
@@ -140,7 +140,7 @@ class ZarrStorage(LazyTensorStorage):
         read_only: bool = False,
         ndim: int = 1,
         chunk_rows: int | None = None,
-        compressor: str | None = "blosc",
+        compressor: str | None = "zstd",
         compression_level: int = 1,
         commit_interval: float = 1.0,
         background: bool = True,
@@ -211,7 +211,6 @@ class ZarrStorage(LazyTensorStorage):
         super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
         self._engine = CommitEngine(self, self._group, commit_interval=commit_interval, background=background,
                                     name=str(self.path))
-        self._engine.release_gil_codec = self._compressor in ("blosc", None, "none")
         self._sync_attrs(attrs)
         # This session's state.
         self._run: int | None = None  # allocated at the first write
