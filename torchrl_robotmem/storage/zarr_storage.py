@@ -88,8 +88,8 @@ class ZarrStorage(LazyTensorStorage):
             Fixed when the store is created. Defaults to 1.
         chunk_rows (int, optional): rows (along the first dimension) per Zarr
             chunk. Defaults to about 4 MiB of data per chunk, capped at ``max_size``.
-        compressor (str, optional): ``"zstd"`` (the default), ``"blosc"`` (zstd behind
-            a byte shuffle) or ``None``.
+        compressor (str, optional): ``"blosc"`` (the default: zstd level 1 behind a
+            byte shuffle, compressed without holding the GIL), ``"zstd"`` or ``None``.
         compression_level (int, optional): codec level. Defaults to 1.
         commit_interval (float, optional): seconds after which written rows are
             committed even if their chunk is not full. This bounds what a crash
@@ -140,7 +140,7 @@ class ZarrStorage(LazyTensorStorage):
         read_only: bool = False,
         ndim: int = 1,
         chunk_rows: int | None = None,
-        compressor: str | None = "zstd",
+        compressor: str | None = "blosc",
         compression_level: int = 1,
         commit_interval: float = 1.0,
         background: bool = True,
