@@ -156,7 +156,7 @@ def gym_episodes(task: str, param_fn: ParamFn, seeds, max_steps: int = 50) -> It
             ctl.reset(0, o["observation"], o["desired_goal"], params)
             rows = {k: [] for k in ("observation", "achieved_goal", "desired_goal", "action",
                                     "n_observation", "n_achieved_goal", "reward", "is_success", "done")}
-            for t in range(max_steps):
+            for _ in range(max_steps):
                 a = ctl.act(o["observation"][None], o["desired_goal"][None])[0]
                 o2, r, term, trunc, info = env.step(a)
                 for k in ("observation", "achieved_goal", "desired_goal"):

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 import torch
@@ -78,7 +78,7 @@ class GraspParams:
     xy_tolerance: float = 0.008     # how well centred before descending (m)
 
 
-ParamsT = Union[StrikeParams, GraspParams]
+ParamsT = StrikeParams | GraspParams
 
 # Defaults per task. FetchSlide's strike_speed was tuned on held-out env seeds (docs/cross_env.md).
 _DEFAULTS: dict[str, ParamsT] = {
@@ -262,7 +262,7 @@ def make_controller(task: str, num_envs: int = 1) -> _Controller:
 
 # -- TorchRL policy ------------------------------------------------------------------
 
-ParamSource = Union[ParamsT, Callable[[np.ndarray, np.ndarray], ParamsT]]
+ParamSource = ParamsT | Callable[[np.ndarray, np.ndarray], ParamsT]
 
 
 class ScriptedPolicy(TensorDictModuleBase):
