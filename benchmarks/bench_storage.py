@@ -152,6 +152,9 @@ def run_repetition(cfgs: dict, order: list, data, scratch: Path, n_samples: int,
     for name in order:
         progress.set_postfix_str(name)
         res, storage, rb, path = extend_one(name, cfgs[name], data, scratch, progress)
+        # The kernel writes LazyMemmapStorage's dirty pages back lazily; without this the
+        # writeback of one contestant runs during the next one's timed loop.
+        os.sync()
         live[name] = (storage, rb, path)
         results[name] = res
     progress.set_postfix_str("sampling")
