@@ -63,7 +63,7 @@ def main() -> None:
         f"memory now: {after['rows']} transitions | {after['episodes']} episodes | "
         f"{after['runs']} runs | episodes ending in success {after.get('episode_success_rate', 0.0):.1%} | "
         f"envs {list(after['envs'])} | {after['bytes_on_disk'] / 1e6:.2f} MB on disk\n"
-        f"a sampled batch of {batch.shape[0]} spans runs {sorted(batch['run'].unique().tolist())}\n"
+        f"a sampled batch of {batch.shape[0]} spans runs {sorted(storage['run'][batch['index']].unique().tolist())}\n"
         f"run again to append to the same memory: python examples/grow_memory.py --path {args.path}"
     )
     storage.close()
