@@ -11,7 +11,8 @@ Protocol (see ``docs/storage.md``, "Commit protocol and crash safety"):
    record committed, chunks written in place, record cleared. A reopen replays
    a pending journal first.
 
-The engine reads rows through its owner (the storage): ``owner._copy_chunk(c)``,
+The engine reads rows through its owner (the storage): ``owner._copy_chunk(c)``
+(a snapshot taken under the lock), ``owner._chunk_arrays(snapshot)`` (outside it),
 ``owner._meta_snapshot()``, ``owner._len_along_dim0``, ``owner._max_dim0`` and
 ``owner._schema``. It writes nothing but Zarr.
 """
@@ -160,7 +161,7 @@ class CommitEngine:
             overwrite = any(lo < committed0 for lo in self.dirty.values())
             everything = everything or overwrite
             chunks = sorted(self.dirty) if everything else sorted(self._complete_chunks())
-            payload = {c: owner._copy_chunk(c) for c in chunks}
+            snapshots = {c: owner._copy_chunk(c) for c in chunks}
             for c in chunks:
                 del self.dirty[c]
             meta = owner._meta_snapshot() if everything else None
@@ -169,6 +170,8 @@ class CommitEngine:
                 self.first_dirty_time = None
             self.inflight += 1
         try:
+            # split into arrays outside the lock: the foreground only waited for the memcpy
+            payload = {c: owner._chunk_arrays(snap) for c, snap in snapshots.items()}
             if overwrite:
                 self._write_journal(payload, meta)
             self._write_chunks(payload)
