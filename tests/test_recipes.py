@@ -112,3 +112,28 @@ def test_every_env_group_composes(group):
     env_family(cfg.env.name)  # a supported id
     assert cfg.collector.frames_per_batch % cfg.env.max_episode_steps == 0
     assert cfg.replay_buffer.storage._target_ == "torchrl_robotmem.ZarrStorage"
+
+
+def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
+    """memory.prior: a scripted FetchPush memory, read-only, half of every batch (issue 9)."""
+    from recipes.scripted.collect import main as collect
+    from torchrl_robotmem import ZarrStorage
+
+    prior = tmp_path / "scripted-push.zarr"
+    collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0"])
+    n_prior = len(ZarrStorage(prior, read_only=True))
+    assert n_prior == 100
+    s = run_recipe(tmp_path, "env=pick_and_place", f"memory.path={tmp_path / 'own.zarr'}",
+                   f"memory.prior=[{prior}]", "memory.prior_ratio=0.5")
+    assert s["memory_rows_after"] == 50 and s["updates"] > 0
+    # the prior memory is only read
+    assert len(ZarrStorage(prior, read_only=True)) == n_prior
+    # a prior written for another observation layout is refused with the reason
+    reach = tmp_path / "reach.zarr"
+    run_recipe(tmp_path, f"memory.path={reach}", out="reach")
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "env=push", f"memory.path={tmp_path / 'p.zarr'}",
+         f"memory.prior=[{reach}]", f"hydra.run.dir={tmp_path / 'bad'}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode != 0 and "observation layout" in proc.stderr

@@ -10,11 +10,14 @@ update, log, evaluate), with three changes:
   ``memory.pretrain_updates`` updates on it, before collecting anything;
 * optionally, :class:`~torchrl_robotmem.GoalSimilaritySampler` draws rows near
   the goals being chased now, and :class:`~torchrl_robotmem.RecallTransform`
-  shows actor and critic the remembered goals nearest to their goal.
+  shows actor and critic the remembered goals nearest to their goal;
+* ``memory.prior=[path, ...]``: read-only memories of other runs, tasks or
+  scripted controllers, sampled beside the run's own buffer (``prior.py``).
 
     python recipes/her/train.py                        # SAC, FetchReach-v4
     python recipes/her/train.py algo=td3 env=push seed=1
     python recipes/her/train.py replay_buffer.storage._target_=torchrl.data.LazyTensorStorage
+    python recipes/her/train.py env=push 'memory.prior=[memory/scripted/push.zarr]'
 """
 from __future__ import annotations
 
@@ -26,6 +29,7 @@ import numpy as np
 import torch
 import tqdm
 from hydra.utils import to_absolute_path
+from prior import TRANSITION_KEYS, PriorMix, make_prior_buffers
 from tensordict import TensorDict
 from torchrl.checkpoint import Checkpoint, CheckpointError
 from torchrl.record.loggers import generate_exp_name, get_logger
@@ -83,6 +87,13 @@ def main(cfg: DictConfig):  # noqa: F821
     train_env, eval_env = make_environment(cfg, memory=replay_buffer.storage)
     recall = train_env.transform[-1] if cfg.memory.recall.enabled else None
 
+    # Prior memories (read-only), sampled beside the run's own buffer
+    priors = make_prior_buffers(cfg, make_replay_buffer)
+    mix = None
+    if priors:
+        mix = PriorMix(replay_buffer, priors, cfg.memory.prior_ratio, cfg.env.name, TRANSITION_KEYS,
+                       example=train_env.fake_tensordict())
+
     # Create agent, loss, optimiser
     normalizer = GoalNormalizer()
     model, exploration_policy = make_agent(cfg, train_env, normalizer)
@@ -101,6 +112,9 @@ def main(cfg: DictConfig):  # noqa: F821
             ) from err
     elif remembered:
         normalizer.update(replay_buffer[:])  # fresh networks: statistics of the whole memory
+    if mix is not None and not resumed:
+        for buffer in priors:
+            normalizer.update(buffer[:].select(*mix.keys, strict=False))
     keys = loss_keys(cfg)
     num_updates = 0
 
@@ -137,10 +151,18 @@ def main(cfg: DictConfig):  # noqa: F821
             logger.log_metrics(metrics, frames)
         return metrics["eval/success_rate"]
 
+    def sample(query=None):
+        if mix is not None:
+            return mix.sample(cfg.optim.batch_size, query)
+        if query is not None:
+            with goal_sampler.query(query):
+                return replay_buffer.sample()
+        return replay_buffer.sample()
+
     # Fresh networks on a memory that already holds transitions: learn from it first
-    if remembered and not resumed and cfg.memory.pretrain_updates:
+    if (remembered or mix is not None) and not resumed and cfg.memory.pretrain_updates:
         for _ in tqdm.trange(cfg.memory.pretrain_updates, desc="updates on the memory", leave=False):
-            update(replay_buffer.sample())
+            update(sample())
     success = log_eval(0)
 
     # Main loop
@@ -173,12 +195,7 @@ def main(cfg: DictConfig):  # noqa: F821
             losses = TensorDict(batch_size=[n])
             query = current_goals(collector, data) if goal_sampler is not None else None
             for i in range(n):
-                if query is not None:
-                    with goal_sampler.query(query):
-                        batch = replay_buffer.sample()
-                else:
-                    batch = replay_buffer.sample()
-                losses[i] = update(batch)
+                losses[i] = update(sample(query))
             metrics.update({f"train/{k}": v.item() for k, v in losses.mean().items()})
             if algo == "SAC":
                 metrics["train/alpha"] = loss_module.log_alpha.exp().item()

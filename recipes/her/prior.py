@@ -1,0 +1,113 @@
+"""Prior memories: read-only stores of other runs, other tasks or scripted controllers.
+
+``memory.prior=[path, ...]`` opens each store read-only and samples it beside the
+run's own buffer, symmetric sampling as in RLPD (Ball et al., 2023): a fixed
+share of every batch (``memory.prior_ratio``, 0.5 by default) comes from the
+prior memories, the rest from the run's own experience (all of it from the
+priors while the run has none yet). Each prior memory is a TorchRL
+``HERReplayBuffer`` with the current task's reward function, so its rows are
+relabelled like the run's own; the rewards of the rows it returns are then
+recomputed with the current task's reward function too (a FetchPush memory
+used for FetchPickAndPlace keeps its transitions, not its rewards).
+
+Why not ``torchrl.data.ReplayBufferEnsemble``: the ensemble samples its
+buffers' storages through its own sampler and collate, which skips
+``HERReplayBuffer.sample`` and hence the relabelling; a batch drawn from each
+HER buffer and concatenated keeps it.
+"""
+from __future__ import annotations
+
+import torch
+from hydra.utils import to_absolute_path
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+
+from torchrl_robotmem import ZarrStorage, make_reward_fn
+
+__all__ = ["TRANSITION_KEYS", "PriorMix", "make_prior_buffers"]
+
+#: What the losses read from a transition: batches mixing the run's own rows and
+#: prior rows carry exactly these (a prior memory may hold more, e.g. a scripted
+#: controller's parameters, or less bookkeeping, e.g. no episode_reward).
+TRANSITION_KEYS = [
+    "observation", "achieved_goal", "desired_goal", "action",
+    ("next", "observation"), ("next", "achieved_goal"), ("next", "desired_goal"),
+    ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated"),
+]
+
+
+def make_prior_buffers(cfg: DictConfig, make_replay_buffer) -> list:
+    """One HER buffer per ``memory.prior`` path, on a read-only :class:`ZarrStorage`."""
+    buffers = []
+    for path in cfg.memory.get("prior") or []:
+        storage = ZarrStorage(to_absolute_path(str(path)), read_only=True)
+        if not len(storage):
+            raise ValueError(f"the prior memory {path!r} holds no transitions.")
+        buffers.append(make_replay_buffer(cfg, storage))
+    return buffers
+
+
+class PriorMix:
+    """Draws batches from the run's own HER buffer and its prior memories.
+
+    Args:
+        own: the run's own buffer (a ``HERReplayBuffer``).
+        priors (list): HER buffers over read-only prior memories.
+        ratio (float): share of each batch drawn from the priors (0.5: RLPD's
+            symmetric sampling) once the run has transitions of its own.
+        env_name (str): the current task; its reward function rewards the prior rows.
+        keys (list): the keys a batch must hold (the run's own layout); prior
+            memories may hold more (e.g. a scripted controller's parameters).
+    """
+
+    def __init__(self, own, priors: list, ratio: float, env_name: str, keys: list, example=None) -> None:
+        if not 0.0 <= ratio <= 1.0:
+            raise ValueError(f"memory.prior_ratio must be in [0, 1], got {ratio}.")
+        self.own, self.priors, self.ratio = own, priors, float(ratio)
+        self.reward_fn = make_reward_fn(env_name)
+        self.keys = keys
+        sizes = torch.tensor([float(len(p)) for p in priors])
+        self._weights = sizes / sizes.sum() if len(priors) else sizes
+        for p in priors:  # a prior memory must carry everything the run's batches hold
+            have = set(p.storage._storage.keys(True, True)) if p.storage.initialized else set()
+            missing = [k for k in keys if k not in have]
+            wrong = []
+            if example is not None:  # one transition of this task (shapes after the batch dims)
+                for k in keys:
+                    if k in have and k in example.keys(True, True):
+                        got = tuple(p.storage._storage.get(k).shape[1:])
+                        want = tuple(example.get(k).shape[example.batch_dims:])
+                        if got != want:
+                            wrong.append(f"{k}: {list(got)} vs {list(want)}")
+            if missing or wrong:
+                raise ValueError(
+                    f"the prior memory {p.storage.path!r} was written for another observation layout "
+                    f"than {env_name}'s (missing {missing}; shapes {wrong}): e.g. FetchReach's 10-d "
+                    "observation vs FetchPush's 25-d. Use memories of tasks with the same layout."
+                )
+
+    @property
+    def rows(self) -> int:
+        return sum(len(p) for p in self.priors)
+
+    def sample(self, batch_size: int, query=None) -> TensorDictBase:
+        """A batch: ``batch_size * ratio`` rows from the priors, the rest from the run's own buffer."""
+        n_prior = batch_size if not len(self.own) else int(round(self.ratio * batch_size))
+        parts = []
+        if batch_size - n_prior:
+            parts.append(self._own(batch_size - n_prior, query).select(*self.keys, strict=False))
+        if n_prior:
+            counts = torch.distributions.Multinomial(n_prior, self._weights).sample().long().tolist()
+            for buffer, k in zip(self.priors, counts):
+                if k:
+                    batch = buffer.sample(k).select(*self.keys, strict=False)
+                    batch.set(("next", "reward"), self.reward_fn(batch))  # the current task's reward
+                    parts.append(batch)
+        return torch.cat(parts, 0)
+
+    def _own(self, n: int, query):
+        sampler = getattr(self.own, "sampler", None)
+        if query is not None and hasattr(sampler, "query"):
+            with sampler.query(query):
+                return self.own.sample(n)
+        return self.own.sample(n)
