@@ -19,14 +19,12 @@
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 from typing import Any
 
 import torch
 from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase, is_tensor_collection
-from tensordict.utils import NestedKey
 from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, treespec_loads
 
 from . import _backend
@@ -239,14 +237,6 @@ def _unsafe_td(source: dict, batch: torch.Size, device) -> TensorDictBase:
     """``TensorDict(source, batch)`` without re-validating shapes we built (8x faster)."""
     out = {k: _unsafe_td(v, batch, device) if isinstance(v, dict) else v for k, v in source.items()}
     return TensorDict._new_unsafe(out, batch_size=torch.Size(batch), device=device)
-
-
-def nested_key(path: str) -> NestedKey:
-    return _backend.path_to_key(path)
-
-
-def schema_json(schema: dict[str, dict]) -> str:
-    return json.dumps(schema, sort_keys=True)
 
 
 def env_names_of(value: Any, n: int) -> list[str] | None:
