@@ -685,7 +685,7 @@ class ZarrStorage(LazyTensorStorage):
             )
         expected_dims = self.ndim - (1 if single else 0)
         td = kind.to_tensordict(data, expected_dims)
-        if isinstance(td, TensorDictBase) and td.batch_dims < expected_dims:
+        if td.batch_dims < expected_dims:
             raise ValueError(
                 f"ZarrStorage(ndim={self.ndim}) expects data with at least {expected_dims} batch "
                 f"dimension(s); got batch_size {list(td.batch_size)}."
@@ -808,8 +808,6 @@ class ZarrStorage(LazyTensorStorage):
                 f"{[_backend.path_to_key(p) for p in missing]}. Every write must carry the keys the "
                 f"store holds (new keys may be added)."
             )
-        for path in new:
-            _backend.key_to_path(_backend.path_to_key(path))
         return new
 
     def _env_column(self, data: TensorDictBase, batch: torch.Size) -> torch.Tensor:
