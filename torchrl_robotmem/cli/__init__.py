@@ -1,0 +1,100 @@
+"""The ``robotmem`` command line: ``python -m torchrl_robotmem COMMAND ...``.
+
+Commands are registered in :data:`COMMANDS`, which maps a command name to the
+dotted name of the module implementing it. A command module provides two
+functions::
+
+    def add_arguments(parser: argparse.ArgumentParser) -> None: ...
+    def run(args: argparse.Namespace) -> int: ...   # the process exit code
+
+The module is imported when the parser is built, so keep its top-level imports
+light (import torch / zarr / matplotlib inside ``run``). Its docstring's first
+line is the command's one-line help. One module may implement several commands
+(``transfer`` implements ``export`` and ``import``): before ``add_arguments`` is
+called the sub-parser's default ``command`` is set to the command's name, so
+``parser.get_default("command")`` and ``args.command`` say which one is meant.
+
+To add a command, add one entry to :data:`COMMANDS`, e.g.
+``COMMANDS["verify"] = "torchrl_robotmem.cli.verify"``.
+
+Errors the user can fix (a path that is not a memory, an output that exists)
+are raised as :class:`CLIError`; :func:`main` prints its message without a
+traceback and returns its exit code (2 unless given).
+
+Example:
+    >>> from torchrl_robotmem.cli import main
+    >>> main(["inspect", "/nonexistent/memory.zarr"])
+    2
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+__all__ = ["COMMANDS", "CLIError", "build_parser", "main"]
+
+#: command name -> module implementing it (``add_arguments(parser)``, ``run(args) -> int``).
+COMMANDS: dict[str, str] = {
+    "inspect": "torchrl_robotmem.cli.inspect",
+    "plot": "torchrl_robotmem.cli.plot",
+    "export": "torchrl_robotmem.cli.transfer",
+    "import": "torchrl_robotmem.cli.transfer",
+}
+
+
+class CLIError(Exception):
+    """An error the user can fix; printed as one line, no traceback.
+
+    Args:
+        message: what went wrong and, where possible, how to fix it.
+        code: the process exit code (default 2, like argparse's usage errors).
+    """
+
+    def __init__(self, message: str, code: int = 2) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``robotmem`` argument parser with one sub-command per :data:`COMMANDS` entry."""
+    parser = argparse.ArgumentParser(
+        prog="robotmem",
+        description="Inspect, plot, export and import torchrl_robotmem memories (Zarr stores).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module_name in COMMANDS.items():
+        module = importlib.import_module(module_name)
+        doc = (module.__doc__ or "").strip()
+        help_line = getattr(module, "HELP", {}).get(name) or (doc.splitlines()[0] if doc else None)
+        p = sub.add_parser(name, help=help_line, description=help_line)
+        p.set_defaults(command=name)
+        module.add_arguments(p)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``robotmem`` command line.
+
+    Args:
+        argv: the arguments after the program name (default: ``sys.argv[1:]``).
+
+    Returns:
+        The process exit code: 0 on success, 2 for a usage error or a
+        :class:`CLIError` without its own code.
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2): a return code, not an exit, for main([...])
+        return int(e.code or 0)
+    module = importlib.import_module(COMMANDS[args.command])
+    try:
+        return int(module.run(args) or 0)
+    except CLIError as e:
+        print(f"robotmem {args.command}: error: {e}", file=sys.stderr)
+        return e.code
+    except KeyboardInterrupt:
+        print(f"robotmem {args.command}: interrupted", file=sys.stderr)
+        return 130
