@@ -42,12 +42,23 @@ def test_cross_env_command_end_to_end(tmp_path):
     res = run.main([
         "seeds=1", "episodes=2", "push_episodes=2", "slide_episodes=2", "tune_episodes=2",
         "speeds=0.8", f"out={out}", f"workdir={tmp_path / 'mem'}",
+        # the learned arm: FetchSlide SAC+HER with the pooled memory as prior vs scratch, a few frames
+        "learned_frames=100", "learned_seeds=1", "learned_eval_episodes=1", "learned_eval_iter=100",
+        "learned_overrides=collector.init_random_frames=50;memory.pretrain_updates=5;optim.batch_size=16;"
+        "network.hidden_sizes=[16,16];replay_buffer.size=1000;logger.backend=",
     ])
     assert set(res["summary"]["arms"]) == set(run.ARMS)
     for arm in run.ARMS:
         assert res["summary"]["arms"][arm]["n"] == 2
-    assert res["learned"]["status"] == "not run"
+    learned = res["learned"]
+    assert learned["status"] == "run"
+    for arm in ("prior", "scratch"):
+        (run_,) = learned["runs"][arm]
+        assert run_["env"] == "FetchSlide-v4" and run_["frames"] == 100
+        assert run_["memory_rows_after"] == 100  # its own memory: the prior is read-only
+    assert (out / "learned.png").stat().st_size > 0
     saved = json.loads((out / "results.json").read_text())
     assert saved["preregistered"]["primary"] == ["pooled_memory", "pooled_control"]
     assert (out / "cross_env.png").stat().st_size > 0
-    assert "Primary contrast" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "Primary contrast" in report and "| learned arm, seed |" in report

@@ -21,6 +21,7 @@ import dataclasses
 import json
 import os
 import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -161,13 +162,83 @@ def make_arms(storage, baseline: StrikeParams, k: int) -> dict[str, ParamFn]:
     }
 
 
-def learned_arm(**kwargs) -> dict:
-    """Placeholder: FetchSlide SAC+HER with the pooled memory as prior vs from scratch, same budget.
+def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, out: str,
+                eval_episodes: int = 100, eval_iter: int = 2500, overrides: list[str] | None = None,
+                log=print) -> dict:
+    """FetchSlide SAC+HER (``recipes/her``) with ``memory`` as a read-only prior vs from scratch.
 
-    Needs ``recipes/her`` to start from a prior memory (issue 9, "Learning
-    FetchPush on a CPU with a prior memory"); not run until then.
+    Both arms run the same recipe, seeds and frame budget; the prior arm adds
+    ``memory.prior=[memory]`` (sampled as half of every batch, rewards recomputed
+    for FetchSlide, hindsight relabelling on its rows too). Each run is a
+    subprocess writing its own memory under ``workdir/learned`` and its curve
+    (``summary.json``) under ``out/learned``.
+
+    Args:
+        memory: the pooled memory (FetchPush + FetchSlide scripted episodes).
+        frames: new env frames per run; ``0`` skips the arm (hours on a CPU).
+        seeds: training seeds per arm.
+        workdir / out: where the runs' memories / logs go.
+        eval_episodes / eval_iter: deterministic evaluation episodes, every this many frames.
+        overrides: extra hydra overrides for both arms (e.g. ``["collector.cpu_budget_s=3000"]``).
     """
-    return {"status": "not run", "reason": "needs the HER recipe with a prior memory (recipes/her)"}
+    if frames <= 0 or memory is None:
+        return {"status": "not run",
+                "reason": "learned_frames=0; set learned_frames=N (about 75 CPU-ms a frame here) to run it"}
+    train = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "her", "train.py")
+    runs: dict[str, list[dict]] = {"prior": [], "scratch": []}
+    for seed in range(seeds):
+        for arm in ("prior", "scratch"):
+            name = f"{arm}-s{seed}"
+            run_dir = os.path.abspath(os.path.join(out, "learned", name))
+            mem = os.path.abspath(os.path.join(workdir, "learned", f"{name}.zarr"))
+            for p in (mem, f"{mem}-agent", f"{mem}-runs.jsonl"):
+                if os.path.isdir(p):
+                    shutil.rmtree(p)
+                elif os.path.exists(p):
+                    os.remove(p)
+            cmd = [sys.executable, train, "env=slide", f"seed={seed}", f"memory.path={mem}",
+                   f"collector.total_frames={frames}", f"logger.eval_iter={eval_iter}",
+                   f"logger.eval_episodes={eval_episodes}", "logger.plot=false", f"hydra.run.dir={run_dir}",
+                   *(overrides or [])]
+            if arm == "prior":
+                cmd.append(f"memory.prior=[{os.path.abspath(memory)}]")
+            log(f"learned arm: {name}: {' '.join(cmd[1:])}")
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+            with open(os.path.join(run_dir, "summary.json")) as f:
+                summary = json.load(f)
+            runs[arm].append(summary)
+            log(f"learned arm: {name}: success {summary['curve'][-1][1]:.2f} after {summary['frames']} "
+                f"frames ({summary['cpu_s']:.0f} CPU-s)")
+    final = {arm: [r["curve"][-1][1] for r in rs] for arm, rs in runs.items()}
+    return {"status": "run", "reason": f"{seeds} seeds x {frames} frames per arm, {eval_episodes}-episode evals",
+            "memory": os.path.abspath(memory), "runs": runs, "final": final,
+            "mean_final": {arm: float(np.mean(v)) for arm, v in final.items()}}
+
+
+def plot_learned(learned: dict, path: str) -> bool:
+    """Eval-success curves of the learned arm (one line a run)."""
+    if learned.get("status") != "run":
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4))
+    for arm, color in (("prior", "#fd8d3c"), ("scratch", "#6baed6")):
+        for i, run in enumerate(learned["runs"][arm]):
+            xs, ys = zip(*run["curve"])
+            ax.plot(xs, ys, color=color, alpha=0.8, label=f"{arm} memory" if arm == "prior" and i == 0
+                    else "from scratch" if i == 0 else None)
+    ax.set_xlabel("new env frames")
+    ax.set_ylabel("FetchSlide eval success")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
 
 
 # -- memory --------------------------------------------------------------------------
@@ -264,6 +335,13 @@ def report_md(res: dict) -> str:
               f"p = {prim['p']:.2g}: goal (>= +{100 * PREREGISTERED['min_effect']:.0f} pp at p < "
               f"{PREREGISTERED['alpha']}) {'met' if met else 'NOT met'}.",
               f"Learned arm: {res['learned']['status']} ({res['learned']['reason']})."]
+    learned = res["learned"]
+    if learned.get("status") == "run":
+        lines += ["", "| learned arm, seed | prior memory: final success | from scratch | CPU-s (prior / scratch) |",
+                  "|---|---|---|---|"]
+        for i, (p, c) in enumerate(zip(learned["runs"]["prior"], learned["runs"]["scratch"])):
+            lines.append(f"| {i} | {p['curve'][-1][1]:.2f} | {c['curve'][-1][1]:.2f} | "
+                         f"{p['cpu_s']:.0f} / {c['cpu_s']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -281,6 +359,12 @@ def _parse(argv):
     p.add_argument("--k", type=int, default=PREREGISTERED["k"])
     p.add_argument("--workdir", default="memory/cross_env", help="where the memories are written")
     p.add_argument("--out", default="docs/cross_env", help="results.json, report.md, cross_env.png")
+    p.add_argument("--learned_frames", type=int, default=0,
+                   help="FetchSlide SAC+HER frames per run of the learned arm (0: skip; hours on a CPU)")
+    p.add_argument("--learned_seeds", type=int, default=3)
+    p.add_argument("--learned_eval_episodes", type=int, default=100)
+    p.add_argument("--learned_eval_iter", type=int, default=2500)
+    p.add_argument("--learned_overrides", default="", help="extra hydra overrides for both arms, separated by ';'")
     return p.parse_args(kv_args(argv))
 
 
@@ -325,7 +409,11 @@ def main(argv: list[str] | None = None) -> dict:
         "memories": memories,
         "summary": summarise(outcomes, used_speeds),
         "outcomes": {a: [o.astype(int).tolist() for o in v] for a, v in outcomes.items()},
-        "learned": learned_arm(),
+        "learned": learned_arm(
+            os.path.join(args.workdir, "seed0.zarr") if args.seeds else None,
+            frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir, out=args.out,
+            eval_episodes=args.learned_eval_episodes, eval_iter=args.learned_eval_iter,
+            overrides=[o for o in str(args.learned_overrides).split(";") if o], log=log),
         "seconds": round(time.time() - t0, 1),
     }
     with open(os.path.join(args.out, "results.json"), "w") as f:
@@ -335,6 +423,7 @@ def main(argv: list[str] | None = None) -> dict:
         f.write(md)
     plot(res["summary"], os.path.join(args.out, "cross_env.png"),
          f"FetchSlide success, {args.seeds} seeds x {args.episodes} paired episodes per arm (95% Wilson CI; dots: seeds)")
+    plot_learned(res["learned"], os.path.join(args.out, "learned.png"))
     print(md)
     return res
 
