@@ -1,15 +1,519 @@
-"""robotmem transfer (work in progress)."""
+"""Export a memory to ``.npz`` or a Minari dataset, and import one into a new memory.
+
+``robotmem export PATH OUT`` and ``robotmem import SRC PATH``; the format is
+taken from the name (``*.npz``: NumPy, anything else: a Minari dataset
+directory named ``NAME-vVERSION``) or from ``--format``.
+
+* **npz**: one array per stored key (nested keys joined with ``/``, e.g.
+  ``next/observation``), rows in write order (oldest first), the tag columns
+  ``episode`` / ``run`` / ``env`` among them, and ``__robotmem__``: a 0-d
+  string array holding JSON (env names, data kind, ``ndim``, ``max_size``,
+  ``rows``). Nothing is pickled. ``import`` restores every column and tag, so
+  npz -> memory -> npz is bit-exact.
+* **Minari**: one Minari episode per stored episode (write order):
+  observations (``T + 1`` steps: the root values of each transition, then the
+  last ``next`` values) are a ``Dict`` of the keys stored both at the root and
+  under ``next`` (``observation``, ``achieved_goal``, ``desired_goal``, ...),
+  actions, rewards, terminations, truncations and ``infos["is_success"]``. The
+  memory's env names, each episode's env and run and the source schema go in
+  the dataset's metadata under ``"torchrl_robotmem"``. ``import`` reads a local
+  dataset (a directory, or an id under ``MINARI_DATASETS_PATH``; nothing is
+  downloaded) episode by episode into transitions with ``next`` keys.
+"""
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import re
+import warnings
+from typing import Any
+
+import numpy as np
 
 from . import CLIError
+from ._memory import DONE_KEY, SUCCESS_KEY, column, has_key, open_memory, root_attrs, write_order
+
+__all__ = ["export_npz", "import_npz", "export_minari", "import_minari", "add_arguments", "run"]
+
+HELP = {
+    "export": "Export a memory to .npz or a Minari dataset directory.",
+    "import": "Import a .npz file or a local Minari dataset into a new memory.",
+}
+META_KEY = "__robotmem__"
+NPZ_FORMAT = "torchrl_robotmem.npz"
+NPZ_VERSION = 1
+TAGS = ("episode", "run", "env")
+# stored at the root and under "next" but not observations
+_NOT_OBS = {"done", "terminated", "truncated", "reward", "is_success", "step_count"}
+_MINARI_NAME = re.compile(r"^[-_\w]+?-v\d+$")
+
+
+def _progress(iterable, **kwargs):
+    from tqdm.auto import tqdm
+
+    return tqdm(iterable, disable=None, leave=False, **kwargs)  # disable=None: only on a terminal
+
+
+def _check_target(path: str) -> None:
+    if os.path.lexists(path):
+        raise CLIError(f"{path!r} exists; refusing to overwrite it. Remove it or choose another name.")
+
+
+def _path(key: Any) -> str:
+    return key if isinstance(key, str) else "/".join(key)
+
+
+# -- npz ---------------------------------------------------------------------------------------------
+
+
+def export_npz(path: Any, out: str) -> dict[str, Any]:
+    """Writes every column of the memory at ``path`` to ``out`` (``.npz``), rows in write order.
+
+    Args:
+        path: the memory (opened read-only).
+        out (str): the ``.npz`` file to create (refused if it exists).
+
+    Returns:
+        the JSON metadata written under ``__robotmem__``.
+
+    Example:
+        >>> import tempfile, numpy as np, torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_robotmem import ZarrStorage
+        >>> from torchrl_robotmem.cli.transfer import export_npz
+        >>> d = tempfile.mkdtemp()
+        >>> st = ZarrStorage(d + "/m.zarr", 10, env="FetchReach-v4", background=False)
+        >>> st.set(slice(0, 3), TensorDict({"obs": torch.arange(3.0), ("next", "done"): torch.ones(3, 1, dtype=torch.bool)}, [3]))
+        >>> st.close()
+        >>> meta = export_npz(d + "/m.zarr", d + "/m.npz")
+        >>> sorted(np.load(d + "/m.npz").files)
+        ['__robotmem__', 'env', 'episode', 'next/done', 'obs', 'run']
+        >>> np.load(d + "/m.npz")["episode"].tolist(), meta["env_names"]
+        ([0, 1, 2], ['FetchReach-v4'])
+    """
+    _check_target(out)
+    if not out.endswith(".npz"):
+        raise CLIError(f"{out!r}: an npz export's name ends with .npz")
+    storage = open_memory(path)
+    try:
+        attrs = root_attrs(storage)
+        schema = attrs.get("schema") or {}
+        if META_KEY in schema:
+            raise CLIError(f"the memory has a key named {META_KEY!r}, which the npz format reserves")
+        order = write_order(storage)
+        arrays = {p: column(storage, tuple(p.split("/")) if "/" in p else p, order)
+                  for p in _progress(sorted(schema), desc="export", unit="key")}
+        meta = {
+            "format": NPZ_FORMAT,
+            "version": NPZ_VERSION,
+            "source": str(storage.path),
+            "env_names": list(storage.env_names),
+            "kind": attrs.get("kind"),
+            "ndim": int(attrs.get("ndim", 1)),
+            "max_size": int(storage.max_size),
+            "rows": len(storage),
+            "schema": schema,
+        }
+    finally:
+        storage.close()
+    tmp = out[: -len(".npz")] + ".partial.npz"
+    try:
+        np.savez(tmp, **arrays, **{META_KEY: np.array(json.dumps(meta))})
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return meta
+
+
+def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | None = None) -> int:
+    """Creates the memory ``path`` from an ``.npz`` written by :func:`export_npz`; returns its rows.
+
+    Args:
+        src (str): the ``.npz`` file (loaded with ``allow_pickle=False``).
+        path (str): the memory to create (refused if it exists).
+
+    Keyword Args:
+        max_size (int, optional): capacity; defaults to the exported memory's.
+        env (str, optional): tag every row with this env instead of the exported env tags.
+
+    Example:
+        >>> import tempfile, numpy as np, torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_robotmem import ZarrStorage
+        >>> from torchrl_robotmem.cli.transfer import export_npz, import_npz
+        >>> d = tempfile.mkdtemp()
+        >>> st = ZarrStorage(d + "/a.zarr", 10, background=False)
+        >>> st.set(slice(0, 4), TensorDict({"obs": torch.arange(4.0)}, [4]))
+        >>> st.close()
+        >>> _ = export_npz(d + "/a.zarr", d + "/a.npz")
+        >>> import_npz(d + "/a.npz", d + "/b.zarr")
+        4
+        >>> ZarrStorage(d + "/b.zarr", read_only=True)["obs"].tolist()
+        [0.0, 1.0, 2.0, 3.0]
+    """
+    import torch
+    from tensordict import TensorDict
+
+    from torchrl_robotmem.storage import ZarrStorage
+
+    _check_target(path)
+    if not os.path.isfile(src):
+        raise CLIError(f"{src!r} is not a file")
+    try:
+        data = np.load(src, allow_pickle=False)
+        meta = json.loads(str(data[META_KEY]))
+    except (OSError, ValueError, KeyError) as err:
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory ({err})") from None
+    if meta.get("format") != NPZ_FORMAT or int(meta.get("version", 0)) > NPZ_VERSION:
+        raise CLIError(f"{src!r}: unknown npz format {meta.get('format')!r} version {meta.get('version')!r}")
+    keys = [k for k in data.files if k != META_KEY]
+    schema = meta.get("schema") or {}
+    missing = sorted(set(schema) - set(keys))
+    if missing:
+        raise CLIError(f"{src!r} lacks the arrays {missing} its metadata lists")
+    arrays = {k: data[k] for k in _progress(keys, desc="read", unit="key")}
+    for k, a in arrays.items():
+        spec = schema.get(k)
+        if spec is not None and (str(a.dtype) != spec["dtype"] or
+                                 list(a.shape[a.ndim - len(spec["shape"]):]) != spec["shape"]):
+            raise CLIError(f"{src!r}: array {k!r} has dtype {a.dtype} and shape {list(a.shape)}, "
+                           f"its metadata says {spec['dtype']} {spec['shape']} per row")
+    rows = int(meta.get("rows", 0))
+    ndim = int(meta.get("ndim", 1))
+    capacity = int(max_size or meta.get("max_size") or rows)
+    if capacity < rows:
+        raise CLIError(f"--max-size {capacity} is smaller than the {rows} rows in {src!r}")
+    storage = ZarrStorage(path, capacity, ndim=ndim, background=False)
+    try:
+        if rows:
+            tag_arrays = {k: arrays.pop(k) for k in TAGS if k in arrays}
+            lead = next(iter(tag_arrays.values())).shape if tag_arrays else None
+            body = {k: torch.from_numpy(a) for k, a in arrays.items()}
+            td = TensorDict.from_dict(_nest(body), batch_size=lead or [len(next(iter(body.values())))],
+                                      auto_batch_size=False)
+            env_names = list(meta.get("env_names", []))
+            zarr_meta: dict[str, Any] = {"kind": meta.get("kind"), "ndim": ndim, "env_names": env_names}
+            if tag_arrays:
+                tags = {k: torch.from_numpy(a) for k, a in tag_arrays.items()}
+                if env is not None:
+                    zarr_meta["env_names"] = [env]
+                    tags["env"] = torch.zeros_like(tags["env"])
+                zarr_meta["tags"] = TensorDict(tags, batch_size=lead).state_dict()
+            storage.load_state_dict({"_storage": td, "_len": rows, "initialized": True, "zarr": zarr_meta})
+        elif env is not None:
+            storage.env = env
+        storage.close()
+    except BaseException:
+        storage.close()
+        _remove_store(path)  # nothing half-imported is left behind
+        raise
+    return rows
+
+
+def _nest(flat: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for path, value in flat.items():
+        node = out
+        parts = path.split("/")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return out
+
+
+def _remove_store(path: str) -> None:
+    import shutil
+
+    if os.path.isdir(path):
+        shutil.rmtree(path, ignore_errors=True)
+
+
+# -- Minari ------------------------------------------------------------------------------------------
+
+
+def _minari_target(out: str) -> tuple[str, str]:
+    """``(datasets_root, dataset_id)`` of a Minari dataset directory ``out`` (``ROOT/NAME-vN``)."""
+    out = os.path.abspath(out)
+    name = os.path.basename(out.rstrip("/"))
+    if not _MINARI_NAME.match(name):
+        raise CLIError(f"{out!r}: a Minari dataset directory is named NAME-vVERSION, e.g. exports/fetchpush-v0")
+    return os.path.dirname(out), name
+
+
+def _obs_keys(storage, requested: list[str] | None) -> list[str]:
+    keys = storage._views.keys()  # top-level keys
+    if requested:
+        bad = [k for k in requested if k not in keys or ("next", k) not in storage._views.keys(True, True)]
+        if bad:
+            raise CLIError(f"--obs-keys {bad}: not stored both at the root and under 'next'")
+        return list(requested)
+    return [k for k in sorted(keys) if k not in _NOT_OBS and k not in TAGS and k != "next"
+            and not hasattr(storage._views.get(k), "keys") and ("next", k) in storage._views.keys(True, True)]
+
+
+def export_minari(path: Any, out: str, *, obs_keys: list[str] | None = None) -> dict[str, Any]:
+    """Writes the memory at ``path`` as a Minari dataset in the directory ``out`` (``ROOT/NAME-vN``).
+
+    Uses :func:`minari.create_dataset_from_buffers` with ``MINARI_DATASETS_PATH``
+    set to ``ROOT`` while it runs (nothing is downloaded; no env is created:
+    the spaces are ``Box`` spaces of the stored shapes and dtypes).
+
+    Args:
+        path: the memory (opened read-only); its rows must be TensorDicts with
+            ``action`` and ``("next", "done")``.
+        out (str): the dataset directory to create (refused if it exists).
+
+    Keyword Args:
+        obs_keys (list of str, optional): the observation keys; defaults to every
+            key stored both at the root and under ``next`` except flags, rewards
+            and step counters.
+
+    Returns:
+        ``{"dataset_id", "episodes", "steps", "obs_keys"}``.
+    """
+    import gymnasium as gym
+
+    _check_target(out)
+    root, dataset_id = _minari_target(out)
+    storage = open_memory(path)
+    try:
+        if not has_key(storage, "episode") or storage.ndim != 1 or storage._views.get("episode").ndim != 1:
+            raise CLIError("only memories of flat transitions (TensorDict rows, ndim=1) export to Minari")
+        for key in ("action", DONE_KEY):
+            if not has_key(storage, key):
+                raise CLIError(f"the memory has no {_path(key)!r} column; a Minari export needs it")
+        keys = _obs_keys(storage, obs_keys)
+        if not keys:
+            raise CLIError("no observation keys (stored both at the root and under 'next'); pass --obs-keys")
+        order = write_order(storage)
+        cols = {k: column(storage, k, order) for k in keys}
+        nxt = {k: column(storage, ("next", k), order) for k in keys}
+        action = column(storage, "action", order)
+        n = len(order)
+        reward = column(storage, ("next", "reward"), order).reshape(n) if has_key(storage, ("next", "reward")) \
+            else np.zeros(n, np.float32)
+        done = column(storage, DONE_KEY, order).reshape(n, -1).any(-1)
+        trunc = column(storage, ("next", "truncated"), order).reshape(n, -1).any(-1) \
+            if has_key(storage, ("next", "truncated")) else np.zeros(n, bool)
+        term = column(storage, ("next", "terminated"), order).reshape(n, -1).any(-1) \
+            if has_key(storage, ("next", "terminated")) else done & ~trunc
+        success = column(storage, SUCCESS_KEY, order).reshape(n, -1)[:, 0] if has_key(storage, SUCCESS_KEY) else None
+        episode, run, env = (column(storage, k, order) for k in TAGS)
+        env_names = list(storage.env_names)
+        schema = root_attrs(storage).get("schema") or {}
+    finally:
+        storage.close()
+
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    # episodes in order of first appearance (rows of one episode are contiguous in write order
+    # unless a ring cut them; np.unique groups them either way, keeping write order inside)
+    ids, first = np.unique(episode, return_index=True)
+    ids = ids[np.argsort(first)]
+    by_episode = _group_rows(episode)
+    buffers, ep_env, ep_run = [], [], []
+    for i, e in enumerate(_progress(ids, desc="export", unit="episode")):
+        rows = by_episode[e]
+        last = rows[-1:]
+        obs = {k: np.concatenate([cols[k][rows], nxt[k][last]]) for k in keys}
+        truncations = trunc[rows].copy()
+        if not (term[last] | trunc[last]).any():
+            truncations[-1] = True  # an open (or ring-cut) episode ends here
+        infos = {}
+        if success is not None:
+            infos["is_success"] = np.concatenate([np.zeros(1, success.dtype), success[rows]])
+        buffers.append(EpisodeBuffer(
+            id=i, observations=obs if len(keys) > 1 else obs[keys[0]], actions=action[rows],
+            rewards=reward[rows], terminations=term[rows], truncations=truncations, infos=infos or None))
+        ep_env.append(int(env[rows[0]]))
+        ep_run.append(int(run[rows[0]]))
+
+    def box(a: np.ndarray):
+        return gym.spaces.Box(-np.inf, np.inf, a.shape[1:], a.dtype)
+
+    obs_space = gym.spaces.Dict({k: box(cols[k]) for k in keys}) if len(keys) > 1 else box(cols[keys[0]])
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = root
+    try:
+        import minari
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # minari's "author is None" etc.
+            ds = minari.create_dataset_from_buffers(
+                dataset_id, buffers, observation_space=obs_space, action_space=box(action),
+                algorithm_name="torchrl_robotmem export", description=f"exported by torchrl_robotmem from {path}",
+                data_format="hdf5",
+            )
+            ds.storage.update_metadata({"torchrl_robotmem": {
+                "env_names": env_names, "episode_env": ep_env, "episode_run": ep_run, "obs_keys": keys,
+                "schema": schema, "source": str(path)}})
+    finally:
+        if old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
+    return {"dataset_id": dataset_id, "episodes": len(buffers), "steps": int(n), "obs_keys": keys}
+
+
+def _group_rows(values: np.ndarray) -> dict[int, np.ndarray]:
+    order = np.argsort(values, kind="stable")
+    uniq, starts = np.unique(values[order], return_index=True)
+    return {u: g for u, g in zip(uniq, np.split(order, starts[1:]))}
+
+
+def _open_minari(src: str):
+    import minari
+
+    candidates = [os.path.join(src, "data"), src] if os.path.isdir(src) else []
+    for c in candidates:
+        if os.path.isfile(os.path.join(c, "metadata.json")):
+            return minari.MinariDataset(c)
+    if os.path.exists(src):
+        raise CLIError(f"{src!r} is not a Minari dataset (no data/metadata.json)")
+    try:
+        from minari.storage.datasets_root_dir import get_dataset_path
+
+        local = get_dataset_path(src)
+    except Exception as err:  # noqa: BLE001 - a malformed id
+        raise CLIError(f"{src!r} is neither a path nor a local Minari dataset id ({err})") from None
+    if not os.path.isfile(os.path.join(local, "data", "metadata.json")):
+        raise CLIError(f"{src!r} is neither a path nor a local Minari dataset (looked in {local}); "
+                       "nothing is downloaded: pass the dataset directory")
+    return minari.MinariDataset(os.path.join(local, "data"))
+
+
+def import_minari(src: str, path: str, *, max_size: int | None = None, env: str | None = None) -> int:
+    """Creates the memory ``path`` from a local Minari dataset, episode by episode; returns its rows.
+
+    Each episode of ``T`` steps becomes ``T`` transitions: the observation keys
+    at the root (steps ``0..T-1``) and under ``next`` (steps ``1..T``),
+    ``action``, ``("next", "reward")``, ``("next", "terminated")``, ``("next",
+    "truncated")``, ``("next", "done")`` (their or), ``done`` (False) and,
+    when the infos carry it, ``("next", "is_success")``. An episode ending
+    with neither flag is marked truncated at its last step. Rows are tagged
+    with ``env`` (default: the env the export recorded per episode, else the
+    dataset's env id).
+
+    Args:
+        src (str): the dataset directory (``ROOT/NAME-vN`` or its ``data/``), or a
+            dataset id under ``MINARI_DATASETS_PATH`` (never downloaded).
+        path (str): the memory to create (refused if it exists).
+
+    Keyword Args:
+        max_size (int, optional): capacity; defaults to the dataset's step count.
+        env (str, optional): the env name to tag every row with.
+    """
+    import torch
+    from tensordict import TensorDict
+    from torchrl.data import ReplayBuffer
+
+    from torchrl_robotmem.storage import ZarrStorage
+
+    _check_target(path)
+    ds = _open_minari(src)
+    meta = ds.storage.metadata.get("torchrl_robotmem") or {}
+    schema = meta.get("schema") or {}
+    env_names = meta.get("env_names") or []
+    episode_env = meta.get("episode_env")
+    spec_env = getattr(getattr(ds.spec, "env_spec", None), "id", None)
+    steps = int(ds.total_steps)
+    capacity = int(max_size or steps)
+    if capacity < steps:
+        raise CLIError(f"--max-size {capacity} is smaller than the {steps} steps of {src!r}")
+
+    def cast(key: str, value: np.ndarray, dtype, shape) -> torch.Tensor:
+        spec = schema.get(key)
+        t = torch.from_numpy(np.ascontiguousarray(value))
+        if spec is not None:
+            from torchrl_robotmem.storage._backend import torch_dtype
+
+            return t.to(torch_dtype(spec["dtype"])).reshape(len(t), *spec["shape"])
+        return t.to(dtype).reshape(len(t), *shape) if dtype is not None else t
+
+    storage = ZarrStorage(path, capacity, background=True)
+    try:
+        rb = ReplayBuffer(storage=storage, batch_size=1)
+        for i, ep in enumerate(_progress(ds.iterate_episodes(), total=ds.total_episodes, desc="import", unit="episode")):
+            T = len(ep.actions) if not isinstance(ep.actions, dict) else len(next(iter(ep.actions.values())))
+            if T == 0:
+                continue
+            obs = ep.observations if isinstance(ep.observations, dict) else {"observation": ep.observations}
+            term = np.asarray(ep.terminations, bool).reshape(T)
+            trunc = np.asarray(ep.truncations, bool).reshape(T).copy()
+            if not (term[-1] or trunc[-1]):
+                trunc[-1] = True
+            td = {"action": cast("action", np.asarray(ep.actions), None, None),
+                  "done": torch.zeros(T, 1, dtype=torch.bool)}
+            nxt = {"reward": cast("next/reward", np.asarray(ep.rewards), torch.float32, (1,)),
+                   "terminated": cast("next/terminated", term, torch.bool, (1,)),
+                   "truncated": cast("next/truncated", trunc, torch.bool, (1,)),
+                   "done": cast("next/done", term | trunc, torch.bool, (1,))}
+            for k, v in obs.items():
+                v = np.asarray(v)
+                td[k] = cast(k, v[:-1], None, None)
+                nxt[k] = cast(f"next/{k}", v[1:], None, None)
+            infos = ep.infos or {}
+            succ = infos.get("is_success", infos.get("success"))
+            if succ is not None and len(succ) == T + 1:
+                nxt["is_success"] = cast("next/is_success", np.asarray(succ)[1:], torch.float32, ())
+            td["next"] = nxt
+            name = env
+            if name is None and episode_env is not None and i < len(episode_env) and 0 <= episode_env[i] < len(env_names):
+                name = env_names[episode_env[i]]
+            storage.env = name if name is not None else spec_env
+            rb.extend(TensorDict(td, batch_size=[T]))
+        rows = len(storage)
+        storage.close()
+    except BaseException:
+        storage.close()
+        _remove_store(path)  # nothing half-imported is left behind
+        raise
+    return rows
+
+
+# -- command line ------------------------------------------------------------------------------------
+
+
+def _format(name: str, given: str | None) -> str:
+    if given:
+        return given
+    return "npz" if name.endswith(".npz") else "minari"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path")
-    parser.add_argument("rest", nargs="*")
+    command = parser.get_default("command")
+    if command == "export":
+        parser.add_argument("path", help="the memory to export (opened read-only)")
+        parser.add_argument("out", help="OUT.npz, or a Minari dataset directory ROOT/NAME-vVERSION")
+        parser.add_argument("--obs-keys", default=None,
+                            help="Minari: comma-separated observation keys (default: keys stored at the root and under next)")
+    else:
+        parser.add_argument("src", help="SRC.npz, a Minari dataset directory, or a local Minari dataset id")
+        parser.add_argument("path", help="the memory to create (must not exist)")
+        parser.add_argument("--max-size", type=int, default=None, help="capacity (default: what is imported)")
+        parser.add_argument("--env", default=None, help="tag every imported row with this env name")
+    parser.add_argument("--format", choices=("npz", "minari"), default=None,
+                        help="default: npz for *.npz names, else minari")
 
 
 def run(args: argparse.Namespace) -> int:
-    raise CLIError(f"{args.path!r} is not a torchrl_robotmem memory (command not implemented yet)")
+    if args.command == "export":
+        fmt = _format(args.out, args.format)
+        if fmt == "npz":
+            meta = export_npz(args.path, args.out)
+            print(f"exported {meta['rows']:,} rows ({len(meta['schema'])} keys) to {args.out}")
+        else:
+            keys = args.obs_keys.split(",") if args.obs_keys else None
+            info = export_minari(args.path, args.out, obs_keys=keys)
+            print(f"exported {info['episodes']:,} episodes ({info['steps']:,} steps, observations "
+                  f"{', '.join(info['obs_keys'])}) to the Minari dataset {args.out}")
+        return 0
+    if args.max_size is not None and args.max_size <= 0:
+        raise CLIError(f"--max-size must be a positive integer, got {args.max_size}")
+    fmt = _format(args.src, args.format)
+    importer = import_npz if fmt == "npz" else import_minari
+    rows = importer(args.src, args.path, max_size=args.max_size, env=args.env)
+    print(f"imported {rows:,} rows into {args.path}")
+    return 0

@@ -1,0 +1,98 @@
+"""Reading a memory for the command line: open it read-only, read its columns in write order.
+
+Shared by the ``inspect``, ``plot`` and ``export`` commands. A memory is opened
+with ``ZarrStorage(path, read_only=True)``: no writer lock is taken, a pending
+commit journal is applied in RAM only, and a writer process may keep appending
+meanwhile (what it commits later is not seen).
+"""
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import numpy as np
+
+from . import CLIError
+
+DONE_KEY = ("next", "done")
+SUCCESS_KEY = ("next", "is_success")
+GOAL_KEYS = (("next", "achieved_goal"), "achieved_goal")
+
+
+def not_a_memory(path: Any, why: str) -> CLIError:
+    return CLIError(f"{os.fspath(path)!r} is not a torchrl_robotmem memory ({why}).")
+
+
+def open_memory(path: Any):
+    """A read-only :class:`~torchrl_robotmem.ZarrStorage` on ``path``, or a :class:`CLIError` saying why not."""
+    from torchrl_robotmem.storage import ZarrStorage
+    from torchrl_robotmem.storage._backend import FORMAT_MARKER, is_url, normalize_path
+
+    name = normalize_path(path)
+    if isinstance(name, str) and not is_url(name):
+        if not os.path.exists(name):
+            raise not_a_memory(path, "no such file or directory")
+        if os.path.isdir(name) and not os.path.exists(os.path.join(name, "zarr.json")):
+            raise not_a_memory(path, "a directory without zarr.json: not a Zarr store")
+        if os.path.isdir(name):
+            try:
+                with open(os.path.join(name, "zarr.json")) as f:
+                    meta = json.load(f)
+            except (OSError, ValueError) as err:
+                raise not_a_memory(path, f"unreadable zarr.json: {err}") from None
+            if meta.get("node_type") != "group" or FORMAT_MARKER not in (meta.get("attributes") or {}):
+                raise not_a_memory(path, f"a Zarr {meta.get('node_type', 'node')} without the {FORMAT_MARKER!r} attribute")
+        elif not name.endswith(".zip"):
+            raise not_a_memory(path, "a file, not a Zarr store directory or *.zip")
+    try:
+        return ZarrStorage(path, read_only=True)
+    except (FileNotFoundError, ValueError, OSError) as err:
+        raise not_a_memory(path, str(err)) from None
+
+
+def root_attrs(storage) -> dict:
+    """The store's group attributes (the commit record), as plain JSON values."""
+    return storage._group.attrs.asdict()
+
+
+def write_order(storage) -> np.ndarray:
+    """Positions along the first dimension of the stored items, oldest first (a full ring starts at the cursor)."""
+    n0 = storage._len_along_dim0 if storage.initialized else 0
+    order = np.arange(n0)
+    if storage.initialized and storage._is_full:
+        cursor = int(root_attrs(storage).get("cursor", 0)) % max(n0, 1)
+        order = np.roll(order, -cursor)
+    return order
+
+
+def has_key(storage, key) -> bool:
+    return storage.initialized and key in storage._views.keys(True, True)
+
+
+def column(storage, key, order: np.ndarray | None = None) -> np.ndarray:
+    """Column ``key`` (tags included) as numpy, items in ``order`` (default: write order)."""
+    order = write_order(storage) if order is None else order
+    col = storage._views.get(key)
+    return col[:storage._len_along_dim0].numpy()[order] if len(order) else col[:0].numpy()
+
+
+def flat_column(storage, key, order: np.ndarray | None = None) -> np.ndarray:
+    """Column ``key`` with every batch dimension (items, time, ...) flattened into one: ``[transitions, *row_shape]``."""
+    batch_dims = storage._views.get("episode").ndim if has_key(storage, "episode") else storage.ndim
+    col = column(storage, key, order)
+    return col.reshape(-1, *col.shape[batch_dims:])
+
+
+def goal_key(storage, requested=None):
+    """The achieved-goal column to report on: ``requested`` or the first of :data:`GOAL_KEYS` stored."""
+    if requested is not None:
+        key = tuple(requested.split("/")) if isinstance(requested, str) and "/" in requested else requested
+        if not has_key(storage, key):
+            raise CLIError(f"the memory has no column {requested!r}; stored keys: {', '.join(schema_paths(storage))}")
+        return key
+    return next((k for k in GOAL_KEYS if has_key(storage, k)), None)
+
+
+def schema_paths(storage) -> list[str]:
+    return sorted((root_attrs(storage).get("schema") or {}).keys())
