@@ -160,11 +160,11 @@ def test_notebook_cell_run_twice(tmp_path):
     meta = {"achieved_goal": [0.1, 0, 0], "desired_goal": [1, 0, 0], "is_success": 0.0}
     mem = RobotMemory(tmp_path / "x.db", max_size=100)
     mem.save_perception(np.zeros(25), np.zeros(4), -1.0, meta)
-    index = mem.index  # something still refers to the first handle
+    first, index = mem.storage, mem.index  # something still refers to the first handle
     mem = RobotMemory(tmp_path / "x.db")
     assert len(mem) == 1
     mem.save_perception(np.zeros(25), np.zeros(4), -1.0, meta)
-    assert len(mem) == 2 and len(index.storage) == 1  # the old handle is a snapshot
+    assert len(mem) == 2 and len(first) == 1 and index.storage is first  # the old handle is a snapshot
     # run the cell a third time: the second handle (never closed) hands over its rows
     mem = RobotMemory(tmp_path / "x.db")
     assert len(mem) == 2 and len(RobotMemory(tmp_path / "x.db", read_only=True)) == 2

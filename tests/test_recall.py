@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import gc
 import math
+import weakref
 from functools import partial
 
 import _rows
@@ -13,8 +14,8 @@ from _rows import unit_quat
 from tensordict import TensorDict
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_robotmem.goal_index import _INDEX_CACHE, GoalIndex, recall
-from torchrl_robotmem.metrics import EuclideanMetric, PoseMetric, get_metric
+from torchrl_robotmem.recall import GoalIndex, recall
+from torchrl_robotmem.recall.metrics import EuclideanMetric, PoseMetric, get_metric
 
 torch.set_num_threads(1)
 
@@ -346,22 +347,30 @@ def test_memmap_storage_and_reopen(tmp_path):
     assert_exact(index, rb, queries, 5)
 
 
-def test_module_recall_caches_one_index_per_storage():
+def test_module_recall_uses_the_shared_index_of_the_storage():
     rb, gen = make_rb(800)
+    st = rb.storage
+    index = GoalIndex.for_storage(st)
     out = recall(rb, torch.rand(3, generator=gen), 3)
     assert out.batch_size == torch.Size([3])
-    st = rb.storage
-    entry = _INDEX_CACHE[id(st)]
-    assert len(entry["indexes"]) == 1
-    index = next(iter(entry["indexes"].values()))
+    assert index.stats()["view_builds"] == 1  # recall() searched the shared index
     recall(st, torch.rand(2, 3, generator=gen), 3, success_only=True)  # storage or buffer
-    assert next(iter(_INDEX_CACHE[id(st)]["indexes"].values())) is index
-    recall(rb, torch.rand(3, generator=gen), 3, metric="euclidean", goal_key="achieved_goal")
-    assert len(_INDEX_CACHE[id(st)]["indexes"]) == 2
-    sid = id(st)
-    del rb, st, entry, index
+    assert GoalIndex.for_storage(rb) is index and index.stats()["views"] == 2
+    # metrics are compared by what they compute
+    assert GoalIndex.for_storage(st, metric="l2") is index
+    assert GoalIndex.for_storage(st, metric=EuclideanMetric()) is index
+    assert GoalIndex.for_storage(st, metric="pose") is not index
+    assert GoalIndex.for_storage(st, metric="pose", metric_kwargs={"rotation_weight": 0.5}) is not \
+        GoalIndex.for_storage(st, metric="pose")
+    other = GoalIndex.for_storage(st, goal_key="achieved_goal")
+    assert other is not index and other.goal_key == "achieved_goal"
+    assert GoalIndex(st) is not index  # the constructor makes a private index
+    ref = weakref.ref(st)
+    del rb, st
     gc.collect()
-    assert sid not in _INDEX_CACHE  # the cache does not keep storages alive
+    assert ref() is None  # the shared index does not keep its storage alive
+    with pytest.raises(RuntimeError, match="garbage-collected"):
+        index.search(torch.zeros(3), 1)
 
 
 # -- bad input --------------------------------------------------------------------

@@ -12,7 +12,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from torchrl_robotmem import ZarrStorage, make_env
-from torchrl_robotmem.goal_index import GoalIndex
+from torchrl_robotmem.recall import GoalIndex
 from torchrl_robotmem.transform import RecallTransform
 
 K = 4

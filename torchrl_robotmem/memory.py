@@ -3,8 +3,8 @@
 The seed product (robotmem) offered ``RobotMemory(db=...)``,
 ``save_perception(observation, action, reward, metadata)`` and
 ``recall(desired_goal, top_k)``. :class:`RobotMemory` keeps those calls but
-stores into a :class:`~torchrl_robotmem.ZarrStorage` and answers with the exact
-:class:`~torchrl_robotmem.GoalIndex`, so a store written by a TorchRL collector
+stores into a :class:`~torchrl_robotmem.ZarrStorage` and answers with the
+storage's shared :class:`~torchrl_robotmem.GoalIndex` (exact), so a store written by a TorchRL collector
 can be read here, and a store written here can be sampled by any TorchRL
 buffer (``RobotMemory.buffer``) or opened with ``ZarrStorage(path)``.
 """
@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
-from .goal_index import GoalIndex
+from .recall import GoalIndex, RowFilter
 from .storage import TAG_KEYS, ZarrStorage
 from .storage import _backend as _zarr
 
@@ -100,7 +100,8 @@ class RobotMemory:
             max_size = 1_000_000
         self.storage = ZarrStorage(path, max_size, env=env, read_only=read_only, **storage_kwargs)
         self.buffer = TensorDictReplayBuffer(storage=self.storage, batch_size=256)
-        self.index = GoalIndex(self.storage, goal_key=_GOAL_KEY, success_key=_SUCCESS_KEY, metric=metric)
+        # the storage's shared index: a sampler or RecallTransform on self.storage searches the same one
+        self.index = GoalIndex.for_storage(self.storage, goal_key=_GOAL_KEY, success_key=_SUCCESS_KEY, metric=metric)
         self._prev: dict[str, torch.Tensor] | None = None  # the open episode's last "next" values
         self._prev_row: int | None = None
 
@@ -232,6 +233,7 @@ class RobotMemory:
         max_distance: float | None = None,
         context_filter: Mapping[str, Any] | None = None,
         spatial_sort: Mapping[str, Any] | None = None,
+        one_per_episode: bool = False,
     ) -> TensorDictBase:
         """The ``top_k`` stored transitions whose achieved goals are nearest ``desired_goal``.
 
@@ -248,6 +250,8 @@ class RobotMemory:
             spatial_sort (dict): robotmem-style ``{"field": ..., "target": goal}``; the
                 ``target`` replaces ``desired_goal`` (results are always sorted by
                 distance to the query).
+            one_per_episode (bool): the ``top_k`` results come from ``top_k``
+                different episodes (the nearest transition of each).
 
         Returns:
             a TensorDict of batch ``[top_k]`` (or ``[B, top_k]``) with every stored key
@@ -269,9 +273,8 @@ class RobotMemory:
             if "target" not in spatial_sort:
                 raise KeyError("spatial_sort needs a 'target' goal, e.g. {'target': desired_goal}.")
             desired_goal = spatial_sort["target"]
-        return self.index.recall(
-            desired_goal, top_k, success_only=success_only, env=env, max_distance=max_distance
-        )
+        return self.index.recall(desired_goal, top_k, filter=RowFilter(success_only=success_only, env=env),
+                                 max_distance=max_distance, one_per_episode=one_per_episode)
 
     def __len__(self) -> int:
         return len(self.storage)

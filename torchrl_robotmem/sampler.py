@@ -22,9 +22,9 @@ from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
-from torchrl_robotmem.goal_index import GoalIndex, _revision, _shared_index
-from torchrl_robotmem.metrics import GoalMetric
-from torchrl_robotmem.storage.columns import read_column
+from torchrl_robotmem.recall import GoalIndex, RowFilter
+from torchrl_robotmem.recall.metrics import GoalMetric
+from torchrl_robotmem.recall.tracking import live_column
 
 __all__ = ["GoalSimilaritySampler"]
 
@@ -47,7 +47,7 @@ class GoalSimilaritySampler(Sampler):
     With a query (one goal or ``[Q, goal_dim]`` goals, e.g. the goals the envs
     are chasing now) the batch is spread evenly over the ``Q`` queries; for
     each query the ``num_candidates`` nearest stored rows are found with an
-    exact :class:`~torchrl_robotmem.goal_index.GoalIndex` (same filters) and rows
+    exact :class:`~torchrl_robotmem.recall.GoalIndex` (same filters) and rows
     are drawn, with replacement, with probabilities
     ``softmax(-distance / temperature)`` over those candidates. A fraction
     ``uniform_ratio`` of the batch is drawn uniformly instead (among the rows
@@ -60,8 +60,10 @@ class GoalSimilaritySampler(Sampler):
     repeated ``rb.sample()`` calls under one query and no new data cost a
     multinomial draw.
 
-    The GoalIndex is shared with :func:`torchrl_robotmem.goal_index.recall` for the
-    same storage and keys. Use ``prefetch=None`` on the buffer: prefetched
+    The GoalIndex is the storage's shared one (:meth:`GoalIndex.for_storage
+    <torchrl_robotmem.recall.GoalIndex.for_storage>`, also used by
+    :func:`~torchrl_robotmem.recall`, :class:`~torchrl_robotmem.RecallTransform`
+    and :class:`~torchrl_robotmem.RobotMemory`) for the same keys and metric. Use ``prefetch=None`` on the buffer: prefetched
     batches would have been drawn under an earlier query.
 
     Keyword Args:
@@ -70,7 +72,7 @@ class GoalSimilaritySampler(Sampler):
         success_key (NestedKey): success flag read by ``success_only``.
             Defaults to ``("next", "is_success")``.
         metric (str): ``"euclidean"`` (default) or ``"pose"`` (see
-            :mod:`torchrl_robotmem.metrics`).
+            :mod:`torchrl_robotmem.recall.metrics`).
         metric_kwargs (dict, optional): keyword arguments of the metric.
         temperature (float): softmax temperature, in goal-distance units.
             Defaults to ``0.05`` (5 cm for Fetch goals).
@@ -153,6 +155,7 @@ class GoalSimilaritySampler(Sampler):
         self.success_only = bool(self.success_only)
         if isinstance(self.env, list):
             self.env = tuple(self.env)
+        self._filter = RowFilter(success_only=self.success_only, env=self.env)
         if self.env_names is not None:
             self.env_names = tuple(self.env_names)
 
@@ -200,8 +203,9 @@ class GoalSimilaritySampler(Sampler):
             self._cache = None
 
     # -- sampling -------------------------------------------------------------
-    def _index(self, storage: Storage) -> GoalIndex:
-        return _shared_index(
+    def index_for(self, storage: Storage) -> GoalIndex:
+        """The index this sampler searches in ``storage``: the storage's shared :class:`GoalIndex`."""
+        return GoalIndex.for_storage(
             storage,
             goal_key=self.goal_key,
             success_key=self.success_key,
@@ -210,16 +214,12 @@ class GoalSimilaritySampler(Sampler):
             env_names=self.env_names,
         )
 
-    def _filters(self):
-        return {"success_only": self.success_only, "env": self.env}
-
-    def _candidates(self, index: GoalIndex, storage: Storage):
-        rev = _revision(storage)
-        key = (id(index), rev, self._query_version, self.num_candidates, self.temperature,
-               self.success_only, self.env)
-        if rev is not None and self._cache is not None and self._cache[0] == key:
+    def _candidates(self, index: GoalIndex):
+        key = (id(index), index.revision, self._query_version, self.num_candidates, self.temperature,
+               self._filter)
+        if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
-        dist, idx, mask = index.search(self._query, self.num_candidates, **self._filters())
+        dist, idx, mask = index.search(self._query, self.num_candidates, filter=self._filter)
         if not bool(mask[:, 0].all()):
             raise RuntimeError(
                 "no stored row matches the sampler's filters "
@@ -232,9 +232,9 @@ class GoalSimilaritySampler(Sampler):
         return cand
 
     def _uniform_rows(self, index: GoalIndex, storage: Storage, n: int) -> torch.Tensor:
-        if not self.success_only and self.env is None:
+        if self._filter.matches_all:
             return storage._rand_given_ndim(n)
-        rows = index._member_rows(**self._filters())
+        rows = index.member_rows(self._filter)
         if rows.numel() == 0:
             raise RuntimeError(
                 "no stored row matches the sampler's filters "
@@ -247,12 +247,12 @@ class GoalSimilaritySampler(Sampler):
         if len(storage) == 0:
             raise RuntimeError(_EMPTY_STORAGE_ERROR)
         if self._query is None:
-            if not self.success_only and self.env is None:
+            if self._filter.matches_all:
                 return storage._rand_given_ndim(batch_size), {}
             # no query, but the filters still hold: uniform over the matching rows
-            return self._uniform_rows(self._index(storage), storage, batch_size).to(torch.long), {}
-        index = self._index(storage)
-        probs, cand_idx, cand_dist = self._candidates(index, storage)
+            return self._uniform_rows(self.index_for(storage), storage, batch_size).to(torch.long), {}
+        index = self.index_for(storage)
+        probs, cand_idx, cand_dist = self._candidates(index)
         Q = probs.shape[0]
         n_uniform = int(round(self.uniform_ratio * batch_size))
         n_near = batch_size - n_uniform
@@ -272,7 +272,7 @@ class GoalSimilaritySampler(Sampler):
             parts_dist.append(cand_dist.gather(1, draws)[keep])
         if n_uniform:
             rows = self._uniform_rows(index, storage, n_uniform).to(torch.long).cpu()
-            col = read_column(storage, self.goal_key)
+            col = live_column(storage, self.goal_key)
             goals = col[rows.to(col.device)]
             goals = goals.cpu().reshape(n_uniform, -1).double()
             d = index.metric.pairwise(self._query, goals).amin(0).float()

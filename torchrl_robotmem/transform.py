@@ -3,7 +3,7 @@
 :class:`RecallTransform` sits in a TorchRL env (``TransformedEnv`` or the
 ``transforms=`` of :func:`~torchrl_robotmem.make_env`). Each time an env
 resets, it looks up the ``k`` stored transitions whose achieved goals lie
-nearest to the new ``desired_goal`` (a :class:`~torchrl_robotmem.goal_index.GoalIndex`
+nearest to the new ``desired_goal`` (a :class:`~torchrl_robotmem.recall.GoalIndex`
 search over a :class:`~torchrl_robotmem.ZarrStorage` or any TorchRL tensor
 storage) and writes them into the observation as ``prior_goals``
 ``[*B, k, goal_dim]``, ``prior_goals_dist`` ``[*B, k]`` and ``prior_goals_mask``
@@ -30,8 +30,9 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.data.replay_buffers.storages import Storage
 from torchrl.envs import Transform
 
-from .goal_index import GoalIndex
-from .metrics import GoalMetric, get_metric
+from .recall import GoalIndex, RowFilter
+from .recall.metrics import GoalMetric, get_metric
+from .recall.tracking import live_column
 from .storage import ZarrStorage
 
 __all__ = ["RecallTransform"]
@@ -60,7 +61,10 @@ class RecallTransform(Transform):
     resets again: one memory query per episode. An empty memory (even an
     uninitialized storage with no rows yet) gives zeros and an all-``False``
     mask. The entries are part of the observation spec, so collectors store
-    them with each transition.
+    them with each transition. The search runs on the storage's shared
+    :class:`~torchrl_robotmem.recall.GoalIndex` (:meth:`GoalIndex.for_storage
+    <torchrl_robotmem.recall.GoalIndex.for_storage>`), the one a sampler or a
+    :class:`~torchrl_robotmem.RobotMemory` on the same storage also uses.
 
     Put the transform *outside* a batched env (``TransformedEnv(SerialEnv(...),
     t)`` or ``make_env(..., num_envs=N, transforms=[t])``): it then runs once
@@ -74,7 +78,8 @@ class RecallTransform(Transform):
         memory (str, os.PathLike, Storage or ReplayBuffer): where to recall
             from. A path or store URL opens ``ZarrStorage(path, read_only=True)``
             lazily, on first use (so the transform pickles and works in spawned
-            workers; the memory is the store as it was when opened). A storage
+            workers; the memory is the store as it was when opened, or as
+            re-read every ``refresh_every`` steps). A storage
             or replay buffer is read live: pass the buffer a collector writes
             into and later episodes recall earlier ones.
         k (int, optional): goals recalled per env. Default: ``5``.
@@ -91,7 +96,7 @@ class RecallTransform(Transform):
             ``"FetchPush-v4"``). Default: every env.
         metric (str, GoalMetric or callable): ``"euclidean"`` (Fetch, HandReach)
             or ``"pose"`` (HandManipulate: position + rotation angle), see
-            :mod:`torchrl_robotmem.metrics`. Default: ``"euclidean"``.
+            :mod:`torchrl_robotmem.recall.metrics`. Default: ``"euclidean"``.
         goal_key (NestedKey): stored column searched and returned as
             ``prior_goals``. Default: ``("next", "achieved_goal")``.
         context_keys (mapping, optional): stored key -> output key of extra
@@ -100,6 +105,18 @@ class RecallTransform(Transform):
         goal_dim (int, optional): size of a goal. Read from the memory, or from
             the env's ``in_key`` spec when the memory has no rows yet; pass it
             only when neither is available.
+        one_per_episode (bool): the ``k`` recalled goals come from ``k``
+            different episodes (the nearest transition of each of the ``k``
+            nearest episodes; needs an ``"episode"`` column, which
+            ``ZarrStorage`` writes). Default: ``False``.
+        refresh_every (int, optional): for a read-only memory (a path, or a
+            ``ZarrStorage`` opened ``read_only``) that another process is
+            writing: re-read the store at the first reset after every
+            ``refresh_every`` steps of the transformed env (a batched step
+            counts once), so that later episodes recall the rows committed
+            since. ``ZarrStorage.refresh()`` reads the whole store again, so
+            pick ``N`` in thousands for large memories. Default: ``None``
+            (the memory is read once).
 
     Example:
         >>> import tempfile, torch
@@ -137,6 +154,8 @@ class RecallTransform(Transform):
         goal_key: NestedKey = ("next", "achieved_goal"),
         context_keys: Mapping[NestedKey, NestedKey] | None = None,
         goal_dim: int | None = None,
+        one_per_episode: bool = False,
+        refresh_every: int | None = None,
     ) -> None:
         if isinstance(memory, os.PathLike):
             memory = os.fspath(memory)
@@ -176,12 +195,27 @@ class RecallTransform(Transform):
             raise ValueError(f"output keys must be distinct, got {all_out}.")
         # Validates the name now rather than at the first reset, in a worker.
         metric_obj = get_metric(metric)
+        if not isinstance(one_per_episode, bool):
+            raise ValueError(f"one_per_episode must be a bool, got {one_per_episode!r}.")
+        if refresh_every is not None:
+            if isinstance(refresh_every, bool) or not isinstance(refresh_every, int) or refresh_every < 1:
+                raise ValueError(f"refresh_every must be an integer >= 1 or None, got {refresh_every!r}.")
+            if not isinstance(memory, str) and not _is_read_only(getattr(memory, "storage", memory)):
+                raise ValueError(
+                    "refresh_every applies to a read-only memory (a store path, or a ZarrStorage opened "
+                    f"read_only=True); a writable {type(getattr(memory, 'storage', memory)).__name__} "
+                    "is read live already."
+                )
 
         super().__init__(in_keys=[unravel_key(in_key)], out_keys=all_out)
         self.memory = memory
         self.k = k
         self.success_only = success_only
         self.env_filter = env
+        self.one_per_episode = one_per_episode
+        self.refresh_every = refresh_every
+        self._filter = RowFilter(success_only=success_only, env=env)
+        self._steps = 0  # env steps since the memory was last (re)read
         self.metric = metric
         self.goal_key = unravel_key(goal_key)
         self.context_keys = context
@@ -205,22 +239,21 @@ class RecallTransform(Transform):
 
     @property
     def index(self) -> GoalIndex:
-        """The :class:`~torchrl_robotmem.goal_index.GoalIndex` searched at each reset."""
+        """The storage's shared :class:`~torchrl_robotmem.recall.GoalIndex`, searched at each reset."""
         if self._index is None:
-            self._index = GoalIndex(self.storage, goal_key=self.goal_key, metric=self._metric_obj)
+            self._index = GoalIndex.for_storage(self.storage, goal_key=self.goal_key, metric=self._metric_obj)
         return self._index
+
+    def refresh(self) -> None:
+        """Re-reads a read-only memory now, to see the rows committed since it was opened."""
+        storage = self.storage
+        if _is_read_only(storage):
+            storage.refresh()
+        self._steps = 0
 
     def _stored(self, key: NestedKey) -> torch.Tensor | None:
         """The storage's column for ``key`` (``[max_size, *shape]``), or None before any write."""
-        storage = self.storage
-        data = getattr(storage, "_storage", None) if storage.initialized else None
-        if not isinstance(data, TensorDictBase):
-            return None
-        column = data.get(key, None)
-        if column is None:
-            keys = sorted(map(str, data.keys(True, True)))
-            raise KeyError(f"The memory has no key {key!r}; it stores {keys}.")
-        return column
+        return live_column(self.storage, key)
 
     def _memory_len(self) -> int:
         storage = self.storage
@@ -246,9 +279,7 @@ class RecallTransform(Transform):
         )
         if n and self._memory_len():
             # search + the few columns needed: GoalIndex.recall would gather every stored key.
-            dist, index, mask = self.index.search(
-                flat, k, success_only=self.success_only, env=self.env_filter
-            )
+            dist, index, mask = self.index.search(flat, k, filter=self._filter, one_per_episode=self.one_per_episode)
             if bool(mask.any()):
                 out.set(mask_out, mask.to(device))
                 out.set(dist_out, dist.masked_fill(~mask, 0.0).to(device))
@@ -319,6 +350,8 @@ class RecallTransform(Transform):
     # -- Transform API ---------------------------------------------------------
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        if self.refresh_every is not None and self._steps >= self.refresh_every:
+            self.refresh()
         goals = tensordict_reset.get(self.in_keys[0])
         batch = tensordict_reset.batch_size
         reset = self._reset_mask(tensordict, batch)
@@ -339,6 +372,7 @@ class RecallTransform(Transform):
         return self._reset(tensordict, tensordict_reset)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        self._steps += 1
         cache = self._cache
         if cache is None or cache.batch_size != next_tensordict.batch_size:
             # Stepped without a reset through this transform (e.g. appended to a
@@ -407,8 +441,9 @@ class RecallTransform(Transform):
         state = super().__getstate__()
         if isinstance(self.memory, str):  # reopened by whoever unpickles it
             state["_storage"] = None
-            state["_index"] = None
+        state["_index"] = None  # the shared index of the storage where it lands
         state["_cache"] = None
+        state["_steps"] = 0
         return state
 
     def __repr__(self) -> str:
@@ -419,6 +454,8 @@ class RecallTransform(Transform):
                 ("success_only", self.success_only),
                 ("env", self.env_filter),
                 ("context_keys", self.context_keys or None),
+                ("one_per_episode", self.one_per_episode),
+                ("refresh_every", self.refresh_every),
             )
             if value
         )
@@ -426,3 +463,7 @@ class RecallTransform(Transform):
             f"{type(self).__name__}(memory={memory!r}, k={self.k}, in_key={self.in_keys[0]!r}, "
             f"out_keys={self.out_keys}, metric={self._metric_obj!r}{extra})"
         )
+
+
+def _is_read_only(storage: Any) -> bool:
+    return bool(getattr(storage, "read_only", False)) and callable(getattr(storage, "refresh", None))

@@ -24,9 +24,10 @@ for which ``0.5`` is the matching value.
 
 Every metric maps ``[Q, d] x [N, d] -> [Q, N]`` (:meth:`GoalMetric.pairwise`)
 and broadcasts elementwise (:meth:`GoalMetric.distance`), in torch. The
-built-in metrics also expose a Euclidean *embedding* whose distances are a
-lower bound of the metric; :class:`~torchrl_robotmem.goal_index.GoalIndex` uses it
-to run exact searches through a KD-tree.
+built-in metrics also expose a Euclidean *embedding* (:meth:`GoalMetric.embed`)
+whose distances are a lower bound of the metric;
+:class:`~torchrl_robotmem.recall.GoalIndex` uses it to run exact searches
+through a KD-tree.
 """
 from __future__ import annotations
 
@@ -45,15 +46,17 @@ class GoalMetric:
     Subclasses implement :meth:`distance` (elementwise with broadcasting) and
     may override :meth:`pairwise` with a faster ``[Q, d] x [N, d] -> [Q, N]``
     kernel. A metric that can be searched through a KD-tree also implements
-    :meth:`_embed` / :meth:`_embed_queries`: Euclidean distances between the
-    embeddings must never exceed the metric (a lower bound), and equal it when
-    :attr:`_embedding_exact` is ``True``.
+    :meth:`embed` (and :meth:`embed_queries` when a query needs several
+    embeddings): Euclidean distances between the embeddings must never exceed
+    the metric (a lower bound), and equal it when :attr:`embedding_exact` is
+    ``True``. A metric without an embedding is searched by brute force.
     """
 
     name: str = "custom"
     #: goal dimension the metric requires (``None``: any)
     goal_dim: int | None = None
-    _embedding_exact: bool = False
+    #: whether Euclidean distances between embeddings equal the metric (not only bound it)
+    embedding_exact: bool = False
 
     def distance(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Distance between ``a[..., d]`` and ``b[..., d]`` (broadcast) -> ``[...]``."""
@@ -74,18 +77,24 @@ class GoalMetric:
                 f"got {goal_dim}."
             )
 
+    @property
+    def key(self) -> tuple:
+        """What the metric computes, hashable: equal keys give equal distances (shared indexes use it)."""
+        return (type(self), id(self))
+
     # -- tree embedding -------------------------------------------------------
     @property
-    def _embeddable(self) -> bool:
-        return type(self)._embed is not GoalMetric._embed
+    def embeddable(self) -> bool:
+        """Whether the metric has an :meth:`embed` (and can be searched through a KD-tree)."""
+        return type(self).embed is not GoalMetric.embed
 
-    def _embed(self, x: np.ndarray) -> np.ndarray:
+    def embed(self, x: np.ndarray) -> np.ndarray:
         """Rows ``[N, d]`` -> float64 embedding ``[N, e]`` (lower-bounding the metric)."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} has no Euclidean embedding.")
 
-    def _embed_queries(self, q: np.ndarray) -> list[np.ndarray]:
+    def embed_queries(self, q: np.ndarray) -> list[np.ndarray]:
         """Queries ``[Q, d]`` -> list of embeddings; a row's lower bound is the min over the list."""
-        return [self._embed(q)]
+        return [self.embed(q)]
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
@@ -96,13 +105,17 @@ class EuclideanMetric(GoalMetric):
 
     Example:
         >>> import torch
-        >>> from torchrl_robotmem.metrics import EuclideanMetric
+        >>> from torchrl_robotmem.recall.metrics import EuclideanMetric
         >>> EuclideanMetric().pairwise(torch.zeros(1, 3), torch.tensor([[3.0, 4.0, 0.0]]))
         tensor([[5.]])
     """
 
     name = "euclidean"
-    _embedding_exact = True
+    embedding_exact = True
+
+    @property
+    def key(self) -> tuple:
+        return ("euclidean",)
 
     def distance(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return torch.linalg.vector_norm(a - b, dim=-1)
@@ -114,7 +127,7 @@ class EuclideanMetric(GoalMetric):
             a.unsqueeze(0), b.unsqueeze(0), compute_mode="donot_use_mm_for_euclid_dist"
         ).squeeze(0)
 
-    def _embed(self, x: np.ndarray) -> np.ndarray:
+    def embed(self, x: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(x, dtype=np.float64)
 
 
@@ -136,7 +149,7 @@ class PoseMetric(GoalMetric):
 
     Example:
         >>> import torch
-        >>> from torchrl_robotmem.metrics import PoseMetric
+        >>> from torchrl_robotmem.recall.metrics import PoseMetric
         >>> q = torch.tensor([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
         >>> minus_q = torch.tensor([[0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0]])
         >>> PoseMetric().pairwise(q, minus_q)
@@ -153,6 +166,10 @@ class PoseMetric(GoalMetric):
                 f"rotation_weight must be a finite number >= 0, got {rotation_weight}."
             )
         self.rotation_weight = rotation_weight
+
+    @property
+    def key(self) -> tuple:
+        return ("pose", self.rotation_weight)
 
     def _angle_from_dot(self, dot: torch.Tensor) -> torch.Tensor:
         return 2.0 * torch.arccos(dot.abs().clamp(max=1.0))
@@ -175,7 +192,7 @@ class PoseMetric(GoalMetric):
     # them, min(|q_a - q_b|, |q_a + q_b|) = 2 sin(t/4) <= t/2, so
     # sqrt(|dp|^2 + (2w min|q_a -+ q_b|)^2) <= |dp| + w t. Queries are
     # embedded with both signs of q, rows with the stored sign.
-    def _embed(self, x: np.ndarray) -> np.ndarray:
+    def embed(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
         q = x[:, 3:7]
         q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
@@ -183,8 +200,8 @@ class PoseMetric(GoalMetric):
             np.concatenate([x[:, :3], (2.0 * self.rotation_weight) * q], axis=1)
         )
 
-    def _embed_queries(self, q: np.ndarray) -> list[np.ndarray]:
-        e = self._embed(q)
+    def embed_queries(self, q: np.ndarray) -> list[np.ndarray]:
+        e = self.embed(q)
         flipped = e.copy()
         flipped[:, 3:] *= -1
         return [e, flipped]
@@ -199,6 +216,10 @@ class _CallableMetric(GoalMetric):
     def __init__(self, fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]):
         self.fn = fn
         self.name = getattr(fn, "__name__", "custom")
+
+    @property
+    def key(self) -> tuple:
+        return ("callable", self.fn)
 
     def pairwise(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         out = self.fn(a, b)
@@ -240,7 +261,7 @@ def get_metric(name_or_callable: str | GoalMetric | Callable = "euclidean", **kw
             (e.g. ``rotation_weight=0.5`` for ``"pose"``).
 
     Example:
-        >>> from torchrl_robotmem.metrics import get_metric
+        >>> from torchrl_robotmem.recall.metrics import get_metric
         >>> get_metric("hand", rotation_weight=0.5)
         PoseMetric(rotation_weight=0.5)
     """
