@@ -41,6 +41,7 @@ COMMANDS: dict[str, str] = {
     "plot": "torchrl_robotmem.cli.plot",
     "export": "torchrl_robotmem.cli.transfer",
     "import": "torchrl_robotmem.cli.transfer",
+    "verify": "torchrl_robotmem.cli.verify", "repair": "torchrl_robotmem.cli.verify",
 }
 
 

@@ -372,15 +372,11 @@ def _open_minari(src: str):
             return minari.MinariDataset(c)
     if os.path.exists(src):
         raise CLIError(f"{src!r} is not a Minari dataset (no data/metadata.json)")
-    try:
-        from minari.storage.datasets_root_dir import get_dataset_path
-
-        local = get_dataset_path(src)
-    except Exception as err:  # noqa: BLE001 - a malformed id
-        raise CLIError(f"{src!r} is neither a path nor a local Minari dataset id ({err})") from None
+    root = os.environ.get("MINARI_DATASETS_PATH") or os.path.join(os.path.expanduser("~"), ".minari", "datasets")
+    local = os.path.join(root, src)
     if not os.path.isfile(os.path.join(local, "data", "metadata.json")):
-        raise CLIError(f"{src!r} is neither a path nor a local Minari dataset (looked in {local}); "
-                       "nothing is downloaded: pass the dataset directory")
+        raise CLIError(f"{src!r} is neither a Minari dataset directory nor a local dataset id (looked in "
+                       f"{local}); nothing is downloaded: pass the dataset directory")
     return minari.MinariDataset(os.path.join(local, "data"))
 
 

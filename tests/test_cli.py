@@ -1,0 +1,243 @@
+"""The ``robotmem`` command line on real memories: subprocesses and in-process ``main([...])``.
+
+Memories are real Zarr stores written through a TorchRL ``TensorDictReplayBuffer``
+over ``ZarrStorage``; Minari datasets are real local HDF5 datasets (nothing is
+downloaded).
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+import zarr
+from conftest import make_transitions
+from tensordict import TensorDict
+from torchrl.data import TensorDictReplayBuffer
+
+from torchrl_robotmem import ZarrStorage
+from torchrl_robotmem.cli import COMMANDS, main
+from torchrl_robotmem.cli.inspect import summarize
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _cli(*args: str) -> subprocess.Popen:
+    """``python -m torchrl_robotmem ARGS`` in a new process (started, not waited for)."""
+    env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return subprocess.Popen([sys.executable, "-m", "torchrl_robotmem", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _write(path, data: TensorDict, *, env: str, max_size: int | None = None) -> None:
+    storage = ZarrStorage(path, max_size, env=env)
+    rb = TensorDictReplayBuffer(storage=storage, batch_size=4)
+    for start in range(0, len(data), 10):  # one extend never wraps a ring onto itself
+        rb.extend(data[start:start + 10])
+    storage.close()
+
+
+def _episodes(n_episodes: int, start: int, *, length: int = 6, success_every: int = 3) -> TensorDict:
+    """Consistent transitions: each row's ``next`` values are the next row's root values within an episode."""
+    rows = []
+    for e in range(start, start + n_episodes):
+        t = torch.arange(length + 1, dtype=torch.float32)
+        obs = torch.stack([e + 0.1 * t, -t, torch.full_like(t, float(e))], -1).repeat(1, 3)  # [T+1, 9]
+        goal = torch.stack([0.07 * e + 0.01 * t, 0.03 * t, 0.02 * e + 0 * t], -1)
+        desired = torch.tensor([0.1 * e, 0.2, 0.3]).expand(length + 1, 3)
+        succ = torch.zeros(length, dtype=torch.float32)
+        if e % success_every == 0:
+            succ[-2:] = 1.0
+        done = torch.zeros(length, 1, dtype=torch.bool)
+        done[-1] = True
+        cur = {"observation": obs[:-1], "achieved_goal": goal[:-1], "desired_goal": desired[:-1]}
+        nxt = {"observation": obs[1:], "achieved_goal": goal[1:], "desired_goal": desired[1:]}
+        rows.append(TensorDict({
+            **cur, "action": torch.sin(torch.arange(length * 4, dtype=torch.float32) + e).reshape(length, 4),
+            "done": torch.zeros(length, 1, dtype=torch.bool),
+            "next": {**nxt, "reward": succ.unsqueeze(-1) - 1.0, "done": done, "truncated": done.clone(),
+                     "terminated": torch.zeros(length, 1, dtype=torch.bool), "is_success": succ},
+        }, [length]))
+    return torch.cat(rows)
+
+
+@pytest.fixture
+def memory(tmp_path):
+    """Two runs, two envs: 8 FetchPush episodes then 5 FetchSlide episodes of 6 steps."""
+    path = str(tmp_path / "mem.zarr")
+    _write(path, _episodes(8, 0), env="FetchPush-v4", max_size=500)
+    _write(path, _episodes(5, 8), env="FetchSlide-v4")
+    return path
+
+
+def test_registry_and_help(capsys):
+    assert {"inspect", "plot", "export", "import"} <= set(COMMANDS)
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in ("inspect", "plot", "export", "import"))
+    assert main(["no-such-command"]) == 2
+
+
+def test_subprocesses_inspect_json_while_a_writer_holds_the_store_and_refuse_a_non_memory(memory, tmp_path):
+    writer = ZarrStorage(memory)  # holds the writer lock, as a training process would
+    try:
+        TensorDictReplayBuffer(storage=writer, batch_size=4).extend(_episodes(1, 13))
+        writer.flush()
+        # both at once: starting Python with torch is most of their time on a loaded machine
+        procs = [_cli("inspect", "--json", memory), _cli("inspect", str(tmp_path))]
+        (out, err), (_, bad_err) = (p.communicate(timeout=300) for p in procs)
+    finally:
+        writer.close()
+    assert procs[1].returncode == 2
+    assert "is not a torchrl_robotmem memory" in bad_err and "Traceback" not in bad_err, bad_err
+    assert procs[0].returncode == 0, err
+    s = json.loads(out)
+    assert s["rows"] == 14 * 6 and s["max_size"] == 500
+    assert s["episodes"] == s["finished_episodes"] == 14
+    assert s["runs"] == 3
+    assert s["env_names"] == ["FetchPush-v4", "FetchSlide-v4"]
+    assert s["format"]["format_version"] == 1
+    by_env = {e["name"]: e for e in s["envs"]}
+    assert by_env["FetchPush-v4"]["rows"] == 48 and by_env["FetchPush-v4"]["episodes"] == 8
+    assert by_env["FetchSlide-v4"]["rows"] == 36 and by_env["FetchSlide-v4"]["episodes"] == 6
+    # episodes 0, 3, 6 succeed in FetchPush (3 / 8); 9, 12 in FetchSlide (2 / 6, run 2 continued FetchSlide)
+    assert by_env["FetchPush-v4"]["episode_success_rate"] == pytest.approx(3 / 8)
+    assert by_env["FetchSlide-v4"]["episode_success_rate"] == pytest.approx(2 / 6)
+    assert [(r["run"], r["envs"], r["episodes"]) for r in s["per_run"]] == [
+        (0, ["FetchPush-v4"], 8), (1, ["FetchSlide-v4"], 5), (2, ["FetchSlide-v4"], 1)]
+    assert s["success"]["episode_success_rate"] == pytest.approx(5 / 14)
+    goals = _episodes(14, 0)["next", "achieved_goal"].numpy().astype(np.float64)
+    cov = s["goal_coverage"]
+    assert cov["key"] == "next/achieved_goal"
+    np.testing.assert_allclose(cov["min"], goals.min(0))
+    np.testing.assert_allclose(cov["max"], goals.max(0))
+    assert cov["cells"] == len(np.unique(np.floor(goals / 0.05).astype(np.int64), axis=0))
+    assert s["bytes_on_disk"] > 0
+    schema = {k["key"]: k for k in s["schema"]}
+    assert schema["next/observation"]["dtype"] == "float32" and schema["next/observation"]["shape"] == [9]
+    assert schema["episode"]["dtype"] == "int64" and schema["episode"]["shape"] == []
+
+
+def test_not_a_memory_in_process(tmp_path, capsys):
+    zarr.open_group(str(tmp_path / "foreign.zarr"), mode="w", zarr_format=3).attrs["x"] = 1
+    (tmp_path / "file.txt").write_text("hi")
+    for path in (tmp_path, tmp_path / "missing.zarr", tmp_path / "foreign.zarr", tmp_path / "file.txt"):
+        for command in (["inspect"], ["plot"], ["export"]):
+            extra = [str(tmp_path / "out.npz")] if command == ["export"] else []
+            assert main([*command, str(path), *extra]) == 2
+            err = capsys.readouterr().err
+            assert f"{str(path)!r} is not a torchrl_robotmem memory" in err, err
+    assert not (tmp_path / "out.npz").exists()
+
+
+def test_inspect_text(memory, capsys):
+    assert main(["inspect", memory]) == 0
+    out = capsys.readouterr().out
+    assert "78 of 500" in out  # 13 episodes x 6 rows
+    assert "FetchPush-v4" in out and "FetchSlide-v4" in out and "37.5%" in out
+    assert "next/achieved_goal" in out and "float32" in out
+
+
+def test_summarize_full_ring_counts_rows_once(tmp_path):
+    path = str(tmp_path / "ring.zarr")
+    _write(path, make_transitions(130), env="FetchReach-v4", max_size=100)
+    s = summarize(path)
+    assert s["rows"] == 100 and s["full"] and s["write_count"] == 130
+    assert s["envs"][0]["rows"] == 100 and s["episodes"] == 10  # rows 30..129: 10 episodes of 10
+
+
+def test_plot_writes_pngs(memory, tmp_path, capsys):
+    out = tmp_path / "plots"
+    assert main(["plot", memory, "--out", str(out), "--window", "3"]) == 0
+    for name in ("success.png", "goals.png"):
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+    assert str(out / "goals.png") in capsys.readouterr().out
+
+
+def test_npz_round_trip_is_bit_exact(tmp_path):
+    src = str(tmp_path / "ring.zarr")
+    _write(src, make_transitions(130), env="FetchReach-v4", max_size=100)  # a wrapped ring: write order != rows
+    _write(src, make_transitions(20, 130), env="FetchPush-v4")
+    a, b = str(tmp_path / "a.npz"), str(tmp_path / "b.npz")
+    assert main(["export", src, a]) == 0
+    assert main(["import", a, str(tmp_path / "copy.zarr")]) == 0
+    assert main(["export", str(tmp_path / "copy.zarr"), b]) == 0
+    za, zb = np.load(a, allow_pickle=False), np.load(b, allow_pickle=False)
+    assert sorted(za.files) == sorted(zb.files)
+    assert {"episode", "run", "env", "next/achieved_goal", "observation"} <= set(za.files)
+    for k in za.files:
+        if k != "__robotmem__":
+            assert za[k].dtype == zb[k].dtype and za[k].tobytes() == zb[k].tobytes(), k
+    # write order: the oldest surviving row first (rows 50..149 of what was written)
+    np.testing.assert_array_equal(za["observation"], make_transitions(150)["observation"][50:].numpy())
+    meta = json.loads(str(za["__robotmem__"]))
+    assert meta["env_names"] == ["FetchReach-v4", "FetchPush-v4"] and meta["rows"] == 100
+    copy = summarize(str(tmp_path / "copy.zarr"))
+    assert copy["runs"] == 2 and copy["env_names"] == meta["env_names"] and copy["max_size"] == 100
+    # the copy keeps writing: new rows get a new run and fresh episode ids
+    st = ZarrStorage(str(tmp_path / "copy.zarr"))
+    TensorDictReplayBuffer(storage=st, batch_size=4).extend(make_transitions(10, 150))  # rows 0..9 of the ring
+    assert st["run"][:10].tolist() == [2] * 10 and int(st["episode"][:10].min()) > int(za["episode"].max())
+    st.close()
+
+
+def test_minari_round_trip_same_episodes(memory, tmp_path, monkeypatch):
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "elsewhere"))
+    out = str(tmp_path / "exports" / "fetch-v0")
+    assert main(["export", memory, out]) == 0
+    assert os.path.isfile(os.path.join(out, "data", "metadata.json"))
+    assert os.environ["MINARI_DATASETS_PATH"] == str(tmp_path / "elsewhere")  # restored
+    import minari
+
+    ds = minari.MinariDataset(os.path.join(out, "data"))
+    assert ds.total_episodes == 13 and ds.total_steps == 78
+    assert main(["import", out, str(tmp_path / "back.zarr")]) == 0
+
+    def per_episode(path):
+        st = ZarrStorage(path, read_only=True)
+        ep, env = st["episode"].numpy(), st["env"].numpy()
+        keys = ["observation", "achieved_goal", "desired_goal", "action", ("next", "observation"),
+                ("next", "achieved_goal"), ("next", "desired_goal"), ("next", "reward"), ("next", "is_success")]
+        cols = {k: st[k].numpy() for k in keys}
+        firsts = sorted(np.unique(ep, return_index=True)[1])
+        out = [({k: v[ep == ep[i]] for k, v in cols.items()}, st.env_names[env[i]]) for i in firsts]
+        st.close()
+        return out
+
+    before, after = per_episode(memory), per_episode(str(tmp_path / "back.zarr"))
+    assert len(before) == len(after) == 13
+    for (x, env_x), (y, env_y) in zip(before, after):
+        assert env_x == env_y
+        for k in x:
+            assert x[k].dtype == y[k].dtype and np.array_equal(x[k], y[k]), k
+    # --env tags every imported row with one env
+    assert main(["import", out, str(tmp_path / "tagged.zarr"), "--env", "FetchReach-v4"]) == 0
+    assert summarize(str(tmp_path / "tagged.zarr"))["env_names"] == ["FetchReach-v4"]
+
+
+def test_existing_targets_and_bad_sources_are_refused(memory, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    npz = tmp_path / "m.npz"
+    assert main(["export", memory, str(npz)]) == 0
+    before = npz.read_bytes()
+    assert main(["export", memory, str(npz)]) == 2
+    assert "exists" in capsys.readouterr().err and npz.read_bytes() == before
+    assert main(["import", str(npz), memory]) == 2  # the target memory exists
+    assert "exists" in capsys.readouterr().err
+    assert summarize(memory)["rows"] == 78
+    (tmp_path / "ds-v0").mkdir()
+    assert main(["export", memory, str(tmp_path / "ds-v0")]) == 2
+    assert main(["export", memory, str(tmp_path / "no_version")]) == 2
+    assert "NAME-vVERSION" in capsys.readouterr().err
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, x=np.zeros(3))
+    assert main(["import", str(bad), str(tmp_path / "new.zarr")]) == 2
+    assert "is not an npz export" in capsys.readouterr().err
+    assert not (tmp_path / "new.zarr").exists()
+    assert main(["import", str(tmp_path / "nowhere-v0"), str(tmp_path / "new.zarr")]) == 2
+    assert not (tmp_path / "new.zarr").exists()
