@@ -137,3 +137,15 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "observation layout" in proc.stderr
+    # recipes/her/compare.py: the two finished runs in one plot and one table
+    sys.path.insert(0, str(RECIPE_DIR))
+    import compare
+
+    png = tmp_path / "cmp.png"
+    md = compare.main(["--out", str(png), "--target", "0.5", f"prior={tmp_path / 'out'}", f"reach={tmp_path / 'reach'}"])
+    rows = md.splitlines()
+    assert rows[0] == "| run | 0k | 0.05k | first >= 0.5 | CPU-s |"
+    assert rows[2].startswith("| prior, out | ") and rows[3].startswith("| reach, reach | ") and len(rows) == 4
+    assert f"| {s['cpu_s']:.0f} |" in rows[2] and png.stat().st_size > 0
+    with pytest.raises(FileNotFoundError, match="not a recipes/her run"):
+        compare.load_run(str(tmp_path / "bad" / "nothing"))

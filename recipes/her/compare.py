@@ -1,0 +1,109 @@
+"""Compare finished runs of ``recipes/her/train.py``: one plot, one markdown table.
+
+Each run directory (the ``hydra.run.dir`` of a run) holds ``summary.json`` with
+its evaluation curve. Runs are grouped by label (``label=dir,dir,...``); the
+plot draws every run (one colour a group), the table gives each run's success
+at every evaluated frame count, its CPU time and the frames at which it first
+reached ``--target``::
+
+    python recipes/her/compare.py --out docs/img/prior_push.png --target 0.9 \\
+        "prior memory=bench_results/prior/run-push-s0,bench_results/prior/run-push-s1" \\
+        "from scratch=bench_results/prior/scratch-push-s0"
+
+A run still in progress has no ``summary.json`` yet: its curve is read from the
+CSV logger's ``eval/success_rate.csv`` instead (its CPU time shows as "partial").
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import glob
+import json
+import os
+
+
+def load_run(run_dir: str) -> dict:
+    """``summary.json`` of a finished run, or the partial curve of a running one."""
+    path = os.path.join(run_dir, "summary.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            return {**json.load(f), "dir": run_dir, "running": False}
+    files = glob.glob(os.path.join(run_dir, "her_logging", "*", "scalars", "eval", "success_rate.csv"))
+    if not files:
+        raise FileNotFoundError(f"{run_dir!r}: no summary.json and no eval/success_rate.csv: not a recipes/her run.")
+    curve = []
+    with open(max(files, key=os.path.getmtime)) as f:
+        for row in csv.reader(f):
+            if len(row) >= 2:
+                try:
+                    curve.append([int(float(row[0])), float(row[1])])
+                except ValueError:
+                    continue  # header
+    return {"dir": run_dir, "curve": curve, "frames": curve[-1][0] if curve else 0, "cpu_s": None,
+            "running": True}
+
+
+def first_reach(curve: list, target: float) -> int | None:
+    """Frames of the first evaluation at or above ``target``."""
+    return next((int(x) for x, y in curve if y >= target), None)
+
+
+def table(groups: dict[str, list[dict]], target: float) -> str:
+    frames = sorted({int(x) for runs in groups.values() for r in runs for x, _ in r["curve"]})
+    head = "| run | " + " | ".join(f"{f / 1000:g}k" for f in frames) + f" | first >= {target} | CPU-s |"
+    lines = [head, "|" + "---|" * (len(frames) + 3)]
+    for label, runs in groups.items():
+        for r in runs:
+            at = {int(x): y for x, y in r["curve"]}
+            cells = " | ".join(f"{at[f]:.2f}" if f in at else "" for f in frames)
+            reach = first_reach(r["curve"], target)
+            cpu = "partial" if r["running"] else f"{r['cpu_s']:.0f}"
+            lines.append(f"| {label}, {os.path.basename(r['dir'].rstrip('/'))} | {cells} | "
+                         f"{reach if reach is not None else '-'} | {cpu} |")
+    return "\n".join(lines)
+
+
+def plot(groups: dict[str, list[dict]], path: str, title: str, target: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.8, 4.2))
+    colors = ["#e6550d", "#3182bd", "#31a354", "#756bb1", "#636363"]
+    for (label, runs), color in zip(groups.items(), colors * 4):
+        for i, r in enumerate(runs):
+            if r["curve"]:
+                xs, ys = zip(*r["curve"])
+                ax.plot(xs, ys, color=color, alpha=0.85, marker="o", markersize=2.5,
+                        ls="--" if r["running"] else "-", label=label if i == 0 else None)
+    ax.axhline(target, color="grey", lw=0.8, ls=":")
+    ax.set(xlabel="new env frames", ylabel="eval success rate", ylim=(-0.02, 1.02), title=title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> str:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("groups", nargs="+", help="label=run_dir[,run_dir...]")
+    p.add_argument("--out", required=True, help="PNG path")
+    p.add_argument("--title", default="")
+    p.add_argument("--target", type=float, default=0.9)
+    args = p.parse_args(argv)
+    groups = {}
+    for g in args.groups:
+        label, _, dirs = g.partition("=")
+        if not dirs:
+            p.error(f"{g!r}: expected label=run_dir[,run_dir...]")
+        groups[label] = [load_run(d) for d in dirs.split(",") if d]
+    plot(groups, args.out, args.title, args.target)
+    md = table(groups, args.target)
+    print(md)
+    return md
+
+
+if __name__ == "__main__":
+    main()
