@@ -82,6 +82,14 @@ def test_registry_and_help(capsys):
     assert main(["no-such-command"]) == 2
 
 
+def test_a_command_that_cannot_be_imported_leaves_the_others_working(monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(COMMANDS, "broken", "torchrl_robotmem.cli._no_such_module")
+    assert main(["broken", "x"]) == 1
+    assert "_no_such_module cannot be imported" in capsys.readouterr().err
+    assert main(["inspect", str(tmp_path)]) == 2
+    assert "is not a torchrl_robotmem memory" in capsys.readouterr().err
+
+
 def test_subprocesses_inspect_json_while_a_writer_holds_the_store_and_refuse_a_non_memory(memory, tmp_path):
     writer = ZarrStorage(memory)  # holds the writer lock, as a training process would
     try:

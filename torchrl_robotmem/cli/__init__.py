@@ -8,8 +8,10 @@ functions::
     def run(args: argparse.Namespace) -> int: ...   # the process exit code
 
 The module is imported when the parser is built, so keep its top-level imports
-light (import torch / zarr / matplotlib inside ``run``). Its docstring's first
-line is the command's one-line help. One module may implement several commands
+light (import matplotlib, minari, ... inside ``run``); a module that fails to
+import leaves only its own commands unusable. The command's one-line help is
+``module.HELP[name]`` if the module defines that dict, else the first line of
+its docstring. One module may implement several commands
 (``transfer`` implements ``export`` and ``import``): before ``add_arguments`` is
 called the sub-parser's default ``command`` is set to the command's name, so
 ``parser.get_default("command")`` and ``args.command`` say which one is meant.
@@ -66,7 +68,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module_name in COMMANDS.items():
-        module = importlib.import_module(module_name)
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError as err:  # one broken command must not take the others down
+            p = sub.add_parser(name, help=f"(unavailable: {err})", add_help=False)
+            p.set_defaults(command=name, _unavailable=f"{module_name} cannot be imported: {err}")
+            p.add_argument("_rest", nargs=argparse.REMAINDER)
+            continue
         doc = (module.__doc__ or "").strip()
         help_line = getattr(module, "HELP", {}).get(name) or (doc.splitlines()[0] if doc else None)
         p = sub.add_parser(name, help=help_line, description=help_line)
@@ -90,9 +98,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2): a return code, not an exit, for main([...])
         return int(e.code or 0)
-    module = importlib.import_module(COMMANDS[args.command])
     try:
-        return int(module.run(args) or 0)
+        if getattr(args, "_unavailable", None):
+            raise CLIError(args._unavailable, code=1)
+        return int(importlib.import_module(COMMANDS[args.command]).run(args) or 0)
     except CLIError as e:
         print(f"robotmem {args.command}: error: {e}", file=sys.stderr)
         return e.code
