@@ -68,10 +68,17 @@ def live_column(storage: Storage, key: NestedKey) -> torch.Tensor | None:
 
 
 def stored_rows(storage: Storage, rows: torch.Tensor) -> TensorDictBase | None:
-    """Every stored entry of ``rows`` (int64, any shape; ``-1`` reads row 0), or ``None`` before the first write."""
+    """Every stored entry of ``rows`` (int64, any shape; ``-1`` reads row 0), or ``None`` before the first write.
+
+    Read from the column TensorDict that :mod:`~torchrl_robotmem.storage.columns`
+    reads (``storage._storage``), not through ``storage.get``: a
+    ``ZarrStorage`` keeps its ``episode`` / ``run`` / ``env`` tags out of
+    sampled batches unless ``sample_tags=True``, and a recall returns them.
+    """
     if not has_rows(storage):
         return None
-    return storage.get(rows.clamp_min(0))
+    data = storage._storage
+    return data[rows.clamp_min(0).to(getattr(data, "device", None) or "cpu")]
 
 
 def _key_str(key: NestedKey) -> str:
