@@ -390,6 +390,7 @@ class ZarrStorage(LazyTensorStorage):
         self._group.update_attributes({"max_size": new_max})
 
     def _load_rows(self, attrs: dict) -> None:
+        record = attrs
         journal = attrs.get("journal")
         if journal and not self.read_only:
             attrs = CommitEngine.replay_journal(self._group, journal)
@@ -406,6 +407,8 @@ class ZarrStorage(LazyTensorStorage):
         if journal and self.read_only:
             for path, rows, values in CommitEngine.journal_chunks(self._group, journal):
                 self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
+        if self.read_only and n0:
+            self._reread_overwritten(record, n0)
         self.initialized = True
         self._len = n
         last = int(attrs.get("last_cursor", -1))
@@ -418,6 +421,38 @@ class ZarrStorage(LazyTensorStorage):
             self._runs = max(self._runs, int(self._views.get("run")[:n0].max()) + 1)
         with self._own_write():
             self._bump_mutation_revision()
+
+    def _reread_overwritten(self, record: dict, n0: int) -> None:
+        """Reads again, chunk by chunk, the rows a writer may have overwritten during a reader's load.
+
+        An overwrite (a ring wrapping around, a journalled in-place write)
+        replaces one array's chunk at a time, so a read that overlapped it can
+        return rows whose columns come from two writes. When the commit record
+        changed during the load and an overwrite was possible, each chunk is read
+        until the record is the same before and after (from the journal while
+        one names the chunk): every row is whole, possibly newer than ``len``.
+        """
+        def now() -> dict:
+            return _backend.open_group(self._store, read_only=True).attrs.asdict()
+
+        after = now()
+        wrapped = int(after.get("write_count", 0)) > self.max_size
+        if after == record or not (wrapped or record.get("journal") or after.get("journal")):
+            return
+        rows = self._chunk_rows
+        for lo in range(0, n0, rows):
+            hi = min(lo + rows, n0)
+            for _ in range(1000):
+                before = now()
+                journal = before.get("journal")
+                prefix = "_journal/" if journal and lo // rows in journal["chunks"] else ""
+                values = {path: self._group[prefix + path][lo:hi] for path in self._schema}
+                if now() == before:
+                    break
+            else:
+                raise RuntimeError(f"Could not read rows {lo}..{hi} of {self.path!r}: the writer commits too often.")
+            for path, v in values.items():
+                self._column(path)[lo:hi] = torch.from_numpy(np.ascontiguousarray(v))
 
     def _allocate(self) -> None:
         """(Re)builds the packed RAM mirror for the current schema, keeping existing rows."""

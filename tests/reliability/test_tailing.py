@@ -1,0 +1,87 @@
+"""A reader process tailing a store while a writer process appends, across a ring wrap.
+
+The writer is a real process (``_gen.writer_main``: deterministic batches, 20 ms
+commits, 16-row chunks, a 200-row ring, flushes now and then); this test process opens the
+store ``read_only=True`` and calls ``refresh()`` in a loop. Every time, it checks:
+
+* ``len`` and the committed ``write_count`` never decrease;
+* before the ring wraps, row ``r`` is exactly the generator's row ``r``;
+* after it wraps, every row is complete (all its columns from one write,
+  bit-exact to the generator), at the slot of its write number, and not older
+  than the ``write_count`` the reader saw (rows being overwritten may already
+  hold newer writes: docs/storage.md, "Concurrency").
+
+``ROBOTMEM_TAIL_SECONDS`` sets how long the reader tails (default 6).
+"""
+from __future__ import annotations
+
+import os
+import random
+import runpy
+import signal
+import sys
+import time
+
+import pytest
+import torch
+
+from torchrl_robotmem import ZarrStorage
+
+from . import _gen
+from ._gen import torn_or_wrong
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs fork and SIGKILL")
+
+MAX_SIZE = 200
+
+
+def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_path):
+    path = tmp_path / "tail.zarr"
+    seconds = float(os.environ.get("ROBOTMEM_TAIL_SECONDS", 6))
+    ctx = _gen.writer_context()
+    prog = ctx.RawArray("q", _gen.PROGRESS_SLOTS)
+    stamps = ctx.RawArray("d", 2 * _gen.STAMP_SLOTS)
+    args = dict(path=str(path), max_size=MAX_SIZE, chunk_rows=16, commit_interval=0.02,
+                seed=random.randrange(10**6), prog=prog, stamps=stamps, err_file=str(tmp_path / "err.txt"),
+                max_batch=30, pause=0.01, flush_prob=0.05)
+    writer = ctx.Process(target=runpy.run_path, args=(_gen.__file__,),
+                         kwargs={"init_globals": {"ARGS": args}, "run_name": _gen.WRITER_RUN_NAME})
+    writer.start()
+    try:
+        deadline = time.monotonic() + 60
+        while prog[_gen.W_FLUSHED] == 0 and writer.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert writer.is_alive(), (tmp_path / "err.txt").read_text()
+        reader = ZarrStorage(path, read_only=True)
+        last_n = last_w = 0
+        refreshes = rows_checked = newer_rows = 0
+        end = time.monotonic() + seconds
+        while time.monotonic() < end or last_w <= MAX_SIZE:
+            assert time.monotonic() < end + 60, f"the ring never wrapped (write_count {last_w})"
+            n = reader.refresh()
+            W = int(reader.state_dict()["zarr"]["write_count"])
+            assert n >= last_n and W >= last_w, f"went backwards: len {last_n} -> {n}, write_count {last_w} -> {W}"
+            assert n == min(W, MAX_SIZE)
+            td = reader[:n]
+            w = -td["action"][:, 0]
+            if W <= MAX_SIZE:
+                bad = torn_or_wrong(td, torch.arange(n))
+            else:
+                bad = torn_or_wrong(td)
+                slot = (w % MAX_SIZE) != torch.arange(n)
+                stale = w < W - MAX_SIZE
+                if slot.any() or stale.any():
+                    bad["slot"] = w[slot | stale][:10].tolist()
+                newer_rows += int((w >= W).sum())
+            assert not bad, f"refresh {refreshes} (write_count {W}) read incomplete or wrong rows: {bad}"
+            rows_checked += n
+            refreshes += 1
+            last_n, last_w = n, W
+        assert writer.is_alive(), (tmp_path / "err.txt").read_text()
+    finally:
+        if writer.is_alive():
+            os.kill(writer.pid, signal.SIGKILL)
+        writer.join(10)
+    print(f"tailing: refreshes={refreshes} rows_checked={rows_checked} write_count={last_w} "
+          f"wraps={last_w // MAX_SIZE} rows newer than the reader's write_count={newer_rows}")
+    assert refreshes > 10
