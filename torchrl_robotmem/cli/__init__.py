@@ -108,3 +108,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"robotmem {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `robotmem inspect --json PATH | head`: the reader left; not an error
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return 141
