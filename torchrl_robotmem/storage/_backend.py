@@ -1,7 +1,8 @@
 """The store handle: paths and URLs, the writer lock, codecs, dtypes and key paths.
 
 The one place that turns what a user passes (a directory, ``file://``, an fsspec
-URL, a ``*.zip``, a Zarr ``Store``) into a Zarr store, and the one place that
+URL, a ``*.zip``, a Zarr ``Store``) into a Zarr store and a writer lock (``flock``
+for directories, a lease object for ``s3://``), and the one place that
 knows how TensorDict keys and torch dtypes map to Zarr arrays. Nothing here
 knows about TorchRL.
 """
@@ -209,6 +210,180 @@ class WriterLock:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
             os.close(self._fd)
             self._fd = None
+
+    def check(self) -> None:
+        """Nothing to check: the OS holds a ``flock`` for as long as its holder lives."""
+
+
+# -- the writer lock of object stores -----------------------------------------------
+
+_LEASE_TTL_ENV = "TORCHRL_ROBOTMEM_LEASE_TTL"
+_LEASE_TTL = 30.0  # seconds a lease outlives its last renewal
+
+
+class S3Lease:
+    """The writer lock of an ``s3://`` store: a lease object beside the store.
+
+    An object store has no ``flock`` and nothing releases a lock when its holder
+    dies, so the writer holds a *lease*: the object ``<store key>.writer-lease``
+    (JSON: owner id, host, pid, ttl), created with a conditional put
+    (``If-None-Match: *``: only one creator succeeds) and renewed every
+    ``ttl / 3`` seconds by a daemon thread with ``If-Match: <its ETag>``. A lease
+    not renewed for ``ttl`` seconds (its holder was killed, or lost the network)
+    is stale: the next writer takes it over with ``If-Match: <stale ETag>``, so
+    of two writers racing for a stale lease exactly one wins. Age is measured on
+    the server's clock (the object's ``Last-Modified`` against the ``Date`` of the
+    same response), so client clocks do not matter. ``close()`` deletes it.
+
+    A lease is a lock, not a fence: a writer paused for longer than ``ttl`` (a
+    suspended laptop, ``SIGSTOP``) loses it, learns so at its next write (an
+    error), but a commit already in flight still lands. ``ttl`` defaults to 30 s;
+    set ``TORCHRL_ROBOTMEM_LEASE_TTL`` (seconds) to change it.
+
+    Args:
+        url (str): the store URL (``s3://bucket/key``).
+        storage_options (dict, optional): the fsspec options of the store.
+        ttl (float, optional): seconds the lease outlives its last renewal.
+    """
+
+    def __init__(self, url: str, storage_options: dict | None = None, ttl: float | None = None):
+        import json
+        import socket
+        import threading
+        import uuid
+
+        import fsspec
+
+        self._json = json
+        self.ttl = float(ttl if ttl is not None else os.environ.get(_LEASE_TTL_ENV, _LEASE_TTL))
+        if self.ttl <= 0:
+            raise ValueError(f"The lease ttl must be > 0 seconds ({_LEASE_TTL_ENV}), got {self.ttl}.")
+        self._fs, path = fsspec.url_to_fs(url, **(storage_options or {}))
+        self.bucket, key, _ = self._fs.split_path(path)
+        self.key = f"{key.rstrip('/')}.writer-lease" if key else "torchrl_robotmem.writer-lease"
+        self.url = f"s3://{self.bucket}/{self.key}"
+        self.lost: str | None = None
+        self._body = {"owner": uuid.uuid4().hex, "host": socket.gethostname(), "pid": os.getpid(),
+                      "ttl": self.ttl}
+        self.etag = self._acquire(url)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._renew_loop, name=f"ZarrStorage-lease({url})", daemon=True)
+        self._thread.start()
+
+    def _put(self, **condition) -> str:
+        body = self._json.dumps(self._body).encode()
+        return self._fs.call_s3("put_object", Bucket=self.bucket, Key=self.key, Body=body, **condition)["ETag"]
+
+    def _acquire(self, url: str) -> str:
+        try:
+            return self._put(IfNoneMatch="*")
+        except OSError as err:
+            if not _precondition_failed(err):
+                raise
+        try:
+            head = self._fs.call_s3("head_object", Bucket=self.bucket, Key=self.key)
+        except FileNotFoundError:  # released meanwhile: try once more
+            return self._put(IfNoneMatch="*")
+        holder = self._read_holder()
+        age = _server_age(head)
+        ttl = float(holder.get("ttl", _LEASE_TTL)) if isinstance(holder, dict) else _LEASE_TTL
+        if age is not None and age > ttl:
+            try:
+                return self._put(IfMatch=head["ETag"])  # take the stale lease over; one racer wins
+            except OSError as err:
+                if not _precondition_failed(err):
+                    raise
+        who = f"host {holder.get('host')!r} pid {holder.get('pid')}" if isinstance(holder, dict) else "another writer"
+        renewed = f"renewed {age:.0f} s ago" if age is not None else "age unknown"
+        raise RuntimeError(
+            f"Another writer ({who}) holds the writer lease of {url} ({renewed}; a "
+            f"lease expires {ttl:.0f} s after its last renewal). A store has one writer at a time; "
+            f"open it with read_only=True to read while it is being written. If that writer is "
+            f"dead, open again after the lease expires, or delete {self.url}."
+        )
+
+    def _read_holder(self) -> dict:
+        try:
+            holder = self._json.loads(self._fs.cat_file(self.url).decode() or "{}")
+            return holder if isinstance(holder, dict) else {}
+        except Exception:  # noqa: BLE001 - a foreign or vanished lease: judged by its age only
+            return {}
+
+    def _renew_loop(self) -> None:
+        while not self._stop.wait(self.ttl / 3):
+            try:
+                self.etag = self._put(IfMatch=self.etag)
+            except OSError as err:
+                if _precondition_failed(err) or isinstance(err, FileNotFoundError):
+                    self.lost = (
+                        f"the writer lease {self.url} was taken over by another writer after this "
+                        f"one did not renew it for {self.ttl:.0f} s"
+                    )
+                    return
+            except Exception:  # noqa: BLE001 - a network blip: the next renewal retries
+                pass
+
+    def check(self) -> None:
+        """Raises if this writer lost its lease (another writer may be writing the store)."""
+        if self.lost is not None:
+            raise RuntimeError(
+                f"This ZarrStorage lost the writer lock of its store: {self.lost}. Rows written "
+                f"since its last commit may not be durable; open the store again."
+            )
+
+    def release(self) -> None:
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._thread.join(timeout=5)
+        if self.lost is not None:
+            return
+        try:
+            self._fs.call_s3("delete_object", Bucket=self.bucket, Key=self.key, IfMatch=self.etag)
+        except Exception:  # noqa: BLE001 - not ours any more, or gone: nothing to release
+            pass
+
+
+def _precondition_failed(err: BaseException) -> bool:
+    cause = getattr(err, "__cause__", None)
+    response = getattr(cause, "response", None) or {}
+    code = str(response.get("Error", {}).get("Code", ""))
+    status = response.get("ResponseMetadata", {}).get("HTTPStatusCode")
+    return code in ("PreconditionFailed", "ConditionalRequestConflict") or status in (409, 412)
+
+
+def _server_age(head: dict) -> float | None:
+    """Seconds since the object was last written, on the server's clock."""
+    from email.utils import parsedate_to_datetime
+
+    date = head.get("ResponseMetadata", {}).get("HTTPHeaders", {}).get("date")
+    modified = head.get("LastModified")
+    if date is None or modified is None:
+        return None
+    return (parsedate_to_datetime(date) - modified).total_seconds()
+
+
+def url_writer_lock(url: str, storage_options: dict | None) -> S3Lease | None:
+    """The writer lock of a URL store: a lease for ``s3://``, none (with a warning) elsewhere.
+
+    ``memory://`` stores live in one process (the in-process writer handover
+    covers them). Other object stores get no lock: one writer per URL is then
+    the user's responsibility, and a warning says so.
+    """
+    scheme = url.split("://", 1)[0].lower()
+    if scheme == "memory":
+        return None
+    if scheme in ("s3", "s3a"):
+        return S3Lease(url, storage_options)
+    import warnings
+
+    warnings.warn(
+        f"No writer lock for {scheme}:// stores: make sure only one process writes to {url} "
+        f"(two writers would interleave chunks and commit records). s3:// stores hold a lease.",
+        stacklevel=3,
+    )
+    return None
+
 
 
 def remove_partial_files(directory: Path) -> int:

@@ -201,6 +201,8 @@ class ZarrStorage(LazyTensorStorage):
         if self._local_dir is not None and not self.read_only:
             self._lock_file = _backend.WriterLock(self._local_dir)
             _backend.remove_partial_files(self._local_dir)  # left by a writer killed mid-chunk
+        elif not self.read_only and isinstance(self.path, str) and _backend.is_url(self.path):
+            self._lock_file = _backend.url_writer_lock(self.path, self._storage_options)
         self._group = _backend.open_group(store, read_only=self.read_only)
         attrs = self._group.attrs.asdict()
         if attrs.get(FORMAT_MARKER) is None:
@@ -685,6 +687,8 @@ class ZarrStorage(LazyTensorStorage):
             raise RuntimeError(
                 f"This ZarrStorage ({self.path!r}) is closed; open ZarrStorage({self.path!r}) again to keep writing."
             )
+        if self._lock_file is not None:
+            self._lock_file.check()  # an object-store lease can be lost
         self._engine.raise_error()
 
     def _prepare(self, cursor, data, set_cursor: bool) -> tuple[TensorDictBase, int, list]:
