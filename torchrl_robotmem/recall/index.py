@@ -15,6 +15,7 @@ per filter) and :mod:`.segments` (exact search).
 from __future__ import annotations
 
 import math
+import threading
 import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -156,6 +157,8 @@ class GoalIndex:
                                       rebuild_fraction=self.rebuild_fraction)
         self._views: OrderedDict[FilterKey, FilterView] = OrderedDict()
         self._dropped_builds = 0
+        # A shared index may serve a collector thread's transform and the trainer's sampler at once.
+        self._lock = threading.RLock()
 
     # -- the shared index -----------------------------------------------------
     @classmethod
@@ -216,8 +219,9 @@ class GoalIndex:
     @property
     def goal_dim(self) -> int | None:
         """Dimension of the stored goals (``None`` until the storage has data)."""
-        self._sync()
-        return self._tracker.goal_dim
+        with self._lock:
+            self._sync()
+            return self._tracker.goal_dim
 
     @property
     def revision(self) -> int:
@@ -226,8 +230,9 @@ class GoalIndex:
         Equal revisions mean equal goals and filter columns, so anything derived
         from search results (a sampler's candidates) can be cached under it.
         """
-        self._sync()
-        return self._tracker.revision
+        with self._lock:
+            self._sync()
+            return self._tracker.revision
 
     @property
     def backend_in_use(self) -> str | None:
@@ -249,19 +254,21 @@ class GoalIndex:
                 run: RunSpec = None) -> GoalIndex:
         """Brings the view of this filter up to date now (queries do it lazily)."""
         key = self._resolve(filter, success_only, env, run)
-        self._sync()
-        if self._tracker.goal_shape is not None:
-            self._view(key).sync()
+        with self._lock:
+            self._sync()
+            if self._tracker.goal_shape is not None:
+                self._view(key).sync()
         return self
 
     def member_rows(self, filter: RowFilter | None = None, *, success_only: bool = False, env: EnvSpec = None,
                     run: RunSpec = None) -> torch.Tensor:
         """Storage rows passing the filter (int64, sorted; non-finite goals excluded), cached until they change."""
         key = self._resolve(filter, success_only, env, run)
-        self._sync()
-        if self._tracker.goal_shape is None or self._tracker.n == 0:
-            return torch.zeros(0, dtype=torch.int64)
-        return self._view(key).member_rows()
+        with self._lock:
+            self._sync()
+            if self._tracker.goal_shape is None or self._tracker.n == 0:
+                return torch.zeros(0, dtype=torch.int64)
+            return self._view(key).member_rows()
 
     def search(
         self,
@@ -302,17 +309,18 @@ class GoalIndex:
         key = self._resolve(filter, success_only, env, run)
         if not isinstance(one_per_episode, (bool, np.bool_)):
             raise ValueError(f"one_per_episode must be a bool, got {one_per_episode!r}.")
-        self._sync()
-        q, batched = self._parse_goal(goal)
-        Q = q.shape[0]
-        if self._tracker.goal_shape is None or self._tracker.n == 0 or Q == 0:
-            d = np.full((Q, k), np.inf)
-            p = np.full((Q, k), -1, dtype=np.int64)
-        else:
-            if one_per_episode:
-                self._tracker.track(self.episode_key, "one_per_episode")
-            view = self._view(key)
-            d, p = self._search_episodes(view, q, k, max_d) if one_per_episode else view.search(q, k, max_d)
+        with self._lock:
+            self._sync()
+            q, batched = self._parse_goal(goal)
+            Q = q.shape[0]
+            if self._tracker.goal_shape is None or self._tracker.n == 0 or Q == 0:
+                d = np.full((Q, k), np.inf)
+                p = np.full((Q, k), -1, dtype=np.int64)
+            else:
+                if one_per_episode:
+                    self._tracker.track(self.episode_key, "one_per_episode")
+                view = self._view(key)
+                d, p = self._search_episodes(view, q, k, max_d) if one_per_episode else view.search(q, k, max_d)
         if not batched:
             d, p = d[0], p[0]
         return torch.from_numpy(d.astype(np.float32)), torch.from_numpy(p), torch.from_numpy(p >= 0)
@@ -355,7 +363,12 @@ class GoalIndex:
         state = dict(self.__dict__)
         state["_views"] = OrderedDict()
         state["_dropped_builds"] = 0
+        del state["_lock"]
         return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
 
     def __repr__(self) -> str:
         return (
