@@ -9,14 +9,16 @@ knows about TorchRL.
 from __future__ import annotations
 
 import fcntl
+import json
 import os
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import zarr
-from zarr.codecs import BloscCodec, ZstdCodec
+from zarr.codecs import BloscCodec, Crc32cCodec, ZstdCodec
 
 # The format this library writes. Bump on any change readers must know about.
 FORMAT_VERSION = 1
@@ -79,21 +81,23 @@ def path_to_key(path: str) -> str | tuple[str, ...]:
 # -- codecs -------------------------------------------------------------------
 
 
-def make_compressors(compressor: str | None, level: int, itemsize: int):
-    """Codec pipeline for one array.
+def make_compressors(compressor: str | None, level: int, itemsize: int, *, checksum: bool = True) -> tuple:
+    """Codec pipeline (bytes-to-bytes codecs) for one array.
 
     ``"zstd"`` is Zarr's own codec; ``"blosc"`` is zstd behind a byte shuffle.
     On FetchPush transitions plain zstd was both smaller and faster (see
-    docs/benchmarks.md).
+    docs/benchmarks.md). ``checksum`` appends Zarr's ``crc32c`` codec, so a
+    changed chunk file fails to decode (see :mod:`.integrity`).
     """
+    tail = (Crc32cCodec(),) if checksum else ()
     if compressor in (None, "none"):
-        return None
+        return tail
     if compressor == "blosc":
-        return BloscCodec(
+        return (BloscCodec(
             cname="zstd", clevel=level, shuffle="shuffle" if itemsize > 1 else "noshuffle", typesize=itemsize
-        )
+        ), *tail)
     if compressor == "zstd":
-        return ZstdCodec(level=level)
+        return (ZstdCodec(level=level), *tail)
     raise ValueError(f"compressor must be 'blosc', 'zstd' or None, got {compressor!r}.")
 
 
@@ -178,6 +182,11 @@ def open_group(store, *, read_only: bool) -> zarr.Group:
         return zarr.open_group(store, mode="r" if read_only else "a", zarr_format=3)
     except (FileNotFoundError, zarr.errors.GroupNotFoundError) as err:
         raise FileNotFoundError(f"No Zarr store found at {store}: {err}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:  # a damaged commit record, not a foreign store
+        from .integrity import IntegrityError, Problem
+
+        problem = Problem("metadata", f"group metadata unreadable ({err})", key="zarr.json")
+        raise IntegrityError(str(getattr(store, "root", store)), [problem], read_only=read_only) from None
     except (ValueError, zarr.errors.NodeTypeValidationError) as err:
         raise ValueError(f"{store} is not a Zarr v3 group: {err}") from None
 
@@ -194,16 +203,24 @@ class WriterLock:
     def __init__(self, directory: Path):
         self.path = directory
         self._fd = os.open(directory, os.O_RDONLY)
-        try:
-            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        # a writer that has just died may leave its commit worker alive for a few ms
+        # (it shares the lock, see storage/_commit_worker.py): wait a little first
+        deadline = time.monotonic() + float(os.environ.get("TORCHRL_ROBOTMEM_LOCK_WAIT", 2.0))
+        while True:
+            try:
+                fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                if time.monotonic() < deadline:
+                    time.sleep(0.02)
+                    continue
             os.close(self._fd)
             self._fd = None
             raise RuntimeError(
                 f"Another process (or another ZarrStorage in this process) is writing to "
                 f"{directory}. A store has one writer at a time; open it with "
                 f"read_only=True to read while it is being written."
-            ) from None
+            )
 
     def release(self) -> None:
         if self._fd is not None:
@@ -383,7 +400,6 @@ def url_writer_lock(url: str, storage_options: dict | None) -> S3Lease | None:
         stacklevel=3,
     )
     return None
-
 
 
 def remove_partial_files(directory: Path) -> int:

@@ -27,7 +27,7 @@ from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase, is_ten
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
-from . import _backend, lifecycle, writer_sync
+from . import _backend, integrity, lifecycle, writer_sync
 from ._backend import FORMAT_MARKER, FORMAT_VERSION
 from .checkpointer import ZarrCheckpointer
 from .commit import CommitEngine
@@ -108,6 +108,13 @@ class ZarrStorage(LazyTensorStorage):
             write one storage. A store has a single writer process, so ``True`` is
             refused; see "Multi-process use" in ``docs/storage.md`` (a pickled
             ``ZarrStorage`` is a read-only handle in the receiving process).
+        on_damage (str, optional): what opening a damaged store does (a missing or
+            corrupt chunk, a commit record pointing past the written rows, see
+            "Integrity" in ``docs/storage.md``). ``"raise"`` (default): an
+            :class:`~torchrl_robotmem.storage.integrity.IntegrityError` naming the
+            arrays and chunks at fault; nothing is written. ``"warn"`` (with
+            ``read_only=True`` only): a warning, and the rows before the first
+            damaged chunk are read. ``robotmem repair PATH`` makes the store writable again.
 
     Examples:
         >>> import tempfile, torch
@@ -149,6 +156,7 @@ class ZarrStorage(LazyTensorStorage):
         compilable: bool = False,
         shared_init: bool = False,
         sample_tags: bool = False,
+        on_damage: str = "raise",
     ) -> None:
         if isinstance(path, (int, np.integer)) and not isinstance(path, bool):
             raise TypeError(
@@ -171,6 +179,12 @@ class ZarrStorage(LazyTensorStorage):
                 "or open ZarrStorage(path, read_only=True) there."
             )
         _backend.make_compressors(compressor, compression_level, 4)  # validates the name
+        if on_damage not in ("raise", "warn") or (on_damage == "warn" and not read_only):
+            raise ValueError(
+                f"on_damage must be 'raise', or 'warn' with read_only=True (a damaged store is not "
+                f"opened for writing: run `robotmem repair PATH`), got {on_damage!r} with read_only={read_only}."
+            )
+        self._on_damage = on_damage
         self.path = _backend.normalize_path(path)
         self.read_only = bool(read_only)
         self._storage_options = storage_options
@@ -209,6 +223,11 @@ class ZarrStorage(LazyTensorStorage):
             self._create_new(attrs, max_size, chunk_rows, ndim)
             attrs = self._group.attrs.asdict()
         self._check_format(attrs)
+        # before anything is read or written: a damaged store raises, naming the array and chunk
+        grows = max_size is not None and int(max_size) != attrs.get("max_size")
+        attrs = integrity.check_open(self._group, attrs, store=store, local_dir=self._local_dir, path=self.path,
+                                     read_only=self.read_only, on_damage=self._on_damage,
+                                     decode=not self.read_only and (bool(attrs.get("journal")) or grows))
         stored_max = int(attrs["max_size"])
         super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
         self._engine = CommitEngine(self, self._group, commit_interval=commit_interval, background=background,
@@ -230,6 +249,7 @@ class ZarrStorage(LazyTensorStorage):
         if env is not None and not self.read_only:
             self.env = env
         if not self.read_only:
+            self._engine.arrays.update(integrity.writing_handles(self._group, self._schema or ()))
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._schema is not None:
                 self._close_open_episodes()
@@ -266,6 +286,7 @@ class ZarrStorage(LazyTensorStorage):
                     "library_version": _library_version(),
                     "torchrl_version": torchrl.__version__,
                     "zarr_version": _backend.zarr.__version__,
+                    "integrity": dict(integrity.MARKER),  # checksummed chunks, all-zero ones written too
                 },
                 "max_size": int(max_size),
                 "ndim": int(ndim),
@@ -395,7 +416,8 @@ class ZarrStorage(LazyTensorStorage):
         record = attrs
         journal = attrs.get("journal")
         if journal and not self.read_only:
-            attrs = CommitEngine.replay_journal(self._group, journal)
+            with integrity.writing_config():
+                attrs = CommitEngine.replay_journal(self._group, journal)
             self._sync_attrs(attrs)
         elif journal:  # a reader applies the pending journal in RAM only
             attrs = {**attrs, **journal["meta"]}
@@ -405,7 +427,8 @@ class ZarrStorage(LazyTensorStorage):
         self._allocate()
         for path in self._schema:
             if n0:
-                self._column(path)[:n0] = torch.from_numpy(np.ascontiguousarray(self._group[path][:n0]))
+                self._column(path)[:n0] = torch.from_numpy(integrity.read_rows(
+                    self._group[path], path, n0, self._chunk_rows, self.path, self.read_only))
         if journal and self.read_only:
             for path, rows, values in CommitEngine.journal_chunks(self._group, journal):
                 self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
@@ -925,7 +948,7 @@ class ZarrStorage(LazyTensorStorage):
         for path, spec in schema.items():
             dtype = _backend.torch_dtype(spec["dtype"])
             shape = (self._max_dim0, *self._inner_shape, *spec["shape"])
-            self._group.create_array(
+            self._engine.arrays[path] = self._group.create_array(
                 path,
                 shape=shape,
                 chunks=(self._chunk_rows, *shape[1:]),
@@ -935,6 +958,7 @@ class ZarrStorage(LazyTensorStorage):
                 ),
                 fill_value=0,
                 overwrite=True,
+                config=integrity.ARRAY_CONFIG,  # all-zero chunks written too: a missing one is damage
             )
 
     def _evolve_schema(self, data: TensorDictBase, new_paths: list[str], single: bool) -> None:
