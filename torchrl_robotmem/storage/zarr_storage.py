@@ -697,6 +697,15 @@ class ZarrStorage(LazyTensorStorage):
         self._bump_mutation_revision()
 
     def _check_writable(self) -> None:
+        if self.read_only and getattr(self, "_received", False):
+            raise RuntimeError(
+                f"This ZarrStorage ({self.path!r}) is the read-only copy another process receives "
+                f"when a ZarrStorage is pickled; a store has one writer process. Do not pass "
+                f"replay_buffer= to MultiSyncCollector / MultiAsyncCollector: iterate the collector "
+                f"in the writer process and call rb.extend(data), or put the storage in a Ray actor "
+                f"(RayReplayBuffer(storage=partial(ZarrStorage, path, max_size))) and extend through "
+                f"it. See docs/distributed.md."
+            )
         if self.read_only:
             raise RuntimeError(
                 f"This ZarrStorage ({self.path!r}) was opened read_only; open it without read_only=True to write."
@@ -1265,7 +1274,9 @@ class ZarrStorage(LazyTensorStorage):
 
 
 def _open_read_only(path: str, storage_options: dict | None, device: str) -> ZarrStorage:
-    return ZarrStorage(path, read_only=True, storage_options=storage_options, device=device)
+    storage = ZarrStorage(path, read_only=True, storage_options=storage_options, device=device)
+    storage._received = True  # a pickled copy: writing through it gets the advice below
+    return storage
 
 
 def _library_version() -> str:
