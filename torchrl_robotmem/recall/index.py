@@ -37,6 +37,9 @@ __all__ = ["GoalIndex", "recall"]
 GOAL_KEY: NestedKey = ("next", "achieved_goal")
 SUCCESS_KEY: NestedKey = ("next", "is_success")
 
+_ALL_ROWS = FilterKey(False, None, None)
+_SUCCESS_ONLY = FilterKey(True, None, None)
+
 EnvSpec = str | int | Sequence[str | int] | None
 RunSpec = int | Sequence[int] | None
 
@@ -237,7 +240,7 @@ class GoalIndex:
     @property
     def backend_in_use(self) -> str | None:
         """``"kdtree"`` or ``"brute"``: the search backend of the unfiltered view (once built)."""
-        view = self._views.get(FilterKey(False, None, None))
+        view = self._views.get(_ALL_ROWS)
         return None if view is None else view.backend
 
     def stats(self) -> dict[str, int]:
@@ -381,6 +384,8 @@ class GoalIndex:
         self._tracker.sync(self.metric.check_goal_dim)
 
     def _resolve(self, filter, success_only, env, run) -> FilterKey:
+        if filter is None and env is None and run is None and type(success_only) is bool:
+            return _SUCCESS_ONLY if success_only else _ALL_ROWS  # the common case, without a RowFilter
         flt = RowFilter.of(filter, success_only=success_only, env=env, run=run)
         return flt.resolve(self.env_names if flt.env is not None else None)
 
