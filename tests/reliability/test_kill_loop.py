@@ -36,7 +36,7 @@ It reports the loss window: for each kill, how long before the kill the oldest
 lost row's ``extend`` had returned (rows lost = extends that returned, minus the
 committed write count).
 
-Kill count: ``ROBOTMEM_KILLS`` (default 12); the full run is
+Kill count: ``ROBOTMEM_KILLS`` (default 8); the full run is
 ``ROBOTMEM_KILLS=120 python -m pytest -s tests/reliability/test_kill_loop.py``.
 ``ROBOTMEM_KILL_SEED`` replays a schedule.
 """
@@ -71,7 +71,7 @@ KINDS = ("startup", "random", "commit", "journal")
 
 
 def _kills() -> int:
-    return int(os.environ.get("ROBOTMEM_KILLS", 12))
+    return int(os.environ.get("ROBOTMEM_KILLS", 8))
 
 
 def _seed() -> int:

@@ -16,7 +16,7 @@
   reference distance and passing the filters, and every row strictly closer
   than the k-th distance returned.
 
-Example counts are sized for the default suite (about 40 s on a loaded 2-core
+Example counts are sized for the default suite (about 25 s on a loaded 2-core
 box). ``ROBOTMEM_HYPOTHESIS_EXAMPLES=500`` runs each property that many times.
 """
 from __future__ import annotations
@@ -102,7 +102,7 @@ def _assert_same_rows(zs, ref, schema, where: str) -> None:
             f"{(_bits(a) != _bits(b)).reshape(n, -1).any(-1).nonzero().squeeze(-1)[:10].tolist()}"
 
 
-@settings(max_examples=_examples(25), **_SETTINGS)
+@settings(max_examples=_examples(15), **_SETTINGS)
 @given(
     schema=schemas(),
     sizes=st.lists(st.integers(1, 40), min_size=1, max_size=6),
@@ -210,7 +210,7 @@ def _check_search(index, metric, rotation_weight, storage, q, k, success_only, e
         assert bool((idx[b, m:] == -1).all()) and bool(torch.isinf(dist[b, m:]).all())
 
 
-@settings(max_examples=_examples(30), **_SETTINGS)
+@settings(max_examples=_examples(20), **_SETTINGS)
 @given(
     metric=st.sampled_from(["euclidean", "pose", "l1"]),
     rotation_weight=st.sampled_from([0.0, 0.1, 0.5, 3.0]),

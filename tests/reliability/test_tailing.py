@@ -5,13 +5,13 @@ commits, 16-row chunks, a 200-row ring, flushes now and then); this test process
 store ``read_only=True`` and calls ``refresh()`` in a loop. Every time, it checks:
 
 * ``len`` and the committed ``write_count`` never decrease;
-* before the ring wraps, row ``r`` is exactly the generator's row ``r``;
-* after it wraps, every row is complete (all its columns from one write,
-  bit-exact to the generator), at the slot of its write number, and not older
-  than the ``write_count`` the reader saw (rows being overwritten may already
-  hold newer writes: docs/storage.md, "Concurrency").
+* every row is complete (all its columns from one write, bit-exact to the
+  generator), at the slot of its write number, and not older than the
+  ``write_count`` the reader saw: before the wrap row ``r`` is write ``r``;
+  rows being overwritten may already hold newer writes (docs/storage.md,
+  "Concurrency"), also when the writer wraps during the reader's load.
 
-``ROBOTMEM_TAIL_SECONDS`` sets how long the reader tails (default 6).
+``ROBOTMEM_TAIL_SECONDS`` sets how long the reader tails (default 3).
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ MAX_SIZE = 200
 
 def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_path):
     path = tmp_path / "tail.zarr"
-    seconds = float(os.environ.get("ROBOTMEM_TAIL_SECONDS", 6))
+    seconds = float(os.environ.get("ROBOTMEM_TAIL_SECONDS", 3))
     ctx = _gen.writer_context()
     prog = ctx.RawArray("q", _gen.PROGRESS_SLOTS)
     stamps = ctx.RawArray("d", 2 * _gen.STAMP_SLOTS)
@@ -64,15 +64,14 @@ def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_pat
             assert n == min(W, MAX_SIZE)
             td = reader[:n]
             w = -td["action"][:, 0]
-            if W <= MAX_SIZE:
-                bad = torn_or_wrong(td, torch.arange(n))
-            else:
-                bad = torn_or_wrong(td)
-                slot = (w % MAX_SIZE) != torch.arange(n)
-                stale = w < W - MAX_SIZE
-                if slot.any() or stale.any():
-                    bad["slot"] = w[slot | stale][:10].tolist()
-                newer_rows += int((w >= W).sum())
+            # whole rows at the slot of their write number, none older than write_count says
+            # (before the wrap that is row r = write r, unless the writer already wrapped since)
+            bad = torn_or_wrong(td)
+            slot = (w % MAX_SIZE) != torch.arange(n)
+            stale = w < W - MAX_SIZE
+            if slot.any() or stale.any():
+                bad["slot"] = w[slot | stale][:10].tolist()
+            newer_rows += int((w >= W).sum())
             assert not bad, f"refresh {refreshes} (write_count {W}) read incomplete or wrong rows: {bad}"
             rows_checked += n
             refreshes += 1
@@ -84,4 +83,4 @@ def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_pat
         writer.join(10)
     print(f"tailing: refreshes={refreshes} rows_checked={rows_checked} write_count={last_w} "
           f"wraps={last_w // MAX_SIZE} rows newer than the reader's write_count={newer_rows}")
-    assert refreshes > 10
+    assert refreshes >= 3
