@@ -699,8 +699,8 @@ class ZarrStorage(LazyTensorStorage):
     def _check_writable(self) -> None:
         if self.read_only and getattr(self, "_received", False):
             raise RuntimeError(
-                f"This ZarrStorage ({self.path!r}) is the read-only copy another process receives "
-                f"when a ZarrStorage is pickled; a store has one writer process. Do not pass "
+                f"This ZarrStorage ({self.path!r}) is read_only: it is the copy another process "
+                f"receives when a ZarrStorage is pickled, and a store has one writer process. Do not pass "
                 f"replay_buffer= to MultiSyncCollector / MultiAsyncCollector: iterate the collector "
                 f"in the writer process and call rb.extend(data), or put the storage in a Ray actor "
                 f"(RayReplayBuffer(storage=partial(ZarrStorage, path, max_size))) and extend through "
