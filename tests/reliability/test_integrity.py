@@ -271,3 +271,16 @@ def test_cli_verify_and_repair(store, tmp_path, capsys):
         assert len(s) == 128 and torch.equal(s["observation"], before["observation"][:128])
     capsys.readouterr()
     assert main(["verify", str(tmp_path)]) == 2 and "not a torchrl_robotmem memory" in capsys.readouterr().err
+
+
+def test_key_added_later_writes_its_older_chunks(store):
+    """Schema evolution: older rows of a new key read zeros, from chunk files (so the store verifies clean)."""
+    path, _ = store
+    with ZarrStorage(path) as s:
+        rows = _rows(10, ROWS)
+        rows["extra"] = torch.ones(10, 2)
+        s.set(slice(ROWS, ROWS + 10), rows)
+    assert sorted(os.listdir(os.path.join(path, "extra/c"))) == ["0", "1", "2", "3", "4"]
+    with ZarrStorage(path, read_only=True) as s:
+        assert not s["extra"][:ROWS].any() and s["extra"][ROWS:].all()
+    assert verify(path).ok

@@ -715,6 +715,16 @@ def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairR
     if group_rebuilt:
         attrs = _rebuild_attrs(store, local_dir)
         actions.append(f"rebuilt the commit record (group zarr.json) from the arrays: {problem.what}")
+    journal = attrs.get("journal")
+    journal_bad = any(p.kind == "journal" for p in before.problems)
+    if journal and not group_rebuilt and not journal_bad and not check_attributes(attrs) and not dry_run:
+        # an interrupted overwrite: redo it first (as a writable open would), so no row stays torn
+        from .commit import CommitEngine
+
+        with writing_config():
+            attrs = CommitEngine.replay_journal(zarr.open_group(store, mode="r+", zarr_format=3), journal)
+        actions.append(f"replayed the pending journal (chunks {journal['chunks']})")
+        journal = None
     new = dict(attrs)
     # -- attributes that make no sense: recomputed from the data below
     bad_attrs = {p.what.split("'")[1] for p in check_attributes(attrs) if p.kind == "attribute"}
@@ -751,6 +761,11 @@ def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairR
         data = _data_problems(store, local_dir, {**new, "len": n_dim0 * _numel(new)})
     else:
         data = [p for p in before.problems if p.kind in ("missing_chunk", "checksum", "undecodable") and p.severity == "error"]
+    if journal and journal_bad and isinstance(journal, dict) and journal.get("chunks"):
+        # its overwrite may have reached some arrays' chunks and not others: those rows may be torn
+        rows = int(new["chunk_rows"])
+        data += [Problem("journal", "overwritten by an interrupted commit whose journal is damaged", chunk=c,
+                         rows=(c * rows, (c + 1) * rows)) for c in journal["chunks"] if c * rows < n_dim0]
     if data:
         cut = min(p.rows[0] for p in data)
         trimmed = _written_extent(store, new, limit=cut)
@@ -789,8 +804,7 @@ def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairR
         changes["env"] = None
     if "kind" in bad_attrs:
         changes["kind"] = _rebuild_attrs(store, local_dir)["kind"]
-    journal = attrs.get("journal")
-    if journal is not None and ("journal" in bad_attrs or any(p.kind == "journal" for p in before.problems) or data):
+    if journal is not None and ("journal" in bad_attrs or journal_bad or data):
         changes["journal"] = None
         actions.append("dropped the pending journal (damaged, or superseded by the truncation)")
     for key in sorted(bad_attrs - set(changes) - {"len"}):
@@ -970,3 +984,13 @@ def writing_handles(group: Any, paths: Any) -> dict:
 def writing_config():
     """A context in which every Zarr handle writes all-zero chunks (a journal replay opens its own)."""
     return zarr.config.set({"array.write_empty_chunks": True})
+
+
+def write_zero_chunks(arr: Any, n0: int, chunk_rows: int) -> None:
+    """Writes the chunks of a new array below row ``n0`` as zeros (a key added to a store with rows).
+
+    Its older rows read zeros; written as chunk files, a later missing one is damage.
+    """
+    for lo in range(0, n0, chunk_rows):
+        hi = min(lo + chunk_rows, arr.shape[0])
+        arr[lo:hi] = np.zeros((hi - lo, *arr.shape[1:]), dtype=arr.dtype)

@@ -969,6 +969,8 @@ class ZarrStorage(LazyTensorStorage):
                 overwrite=True,
                 config=integrity.ARRAY_CONFIG,  # all-zero chunks written too: a missing one is damage
             )
+            if self.initialized:  # a key added later: its older rows are zeros, in chunk files
+                integrity.write_zero_chunks(self._engine.arrays[path], self._len_along_dim0, self._chunk_rows)
 
     def _evolve_schema(self, data: TensorDictBase, new_paths: list[str], single: bool) -> None:
         """Adds columns for keys the store did not hold yet (older rows read zeros)."""
