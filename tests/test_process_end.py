@@ -220,8 +220,9 @@ def test_ctrl_c_in_a_tight_extend_loop(tmp_path):
         ready()
         extend_batches(rb, 10**9, start=2)
     """, signal_after_ready=signal.SIGINT)
-    # Python ends an uncaught KeyboardInterrupt by re-raising SIGINT after its normal exit path
-    assert res.returncode == -signal.SIGINT and "KeyboardInterrupt" in res.stderr, res.stderr
+    # Python ends an uncaught KeyboardInterrupt by re-raising SIGINT after its normal exit path;
+    # with ray installed (torchrl.envs imports it), the process exits with status 1 instead
+    assert res.returncode in (-signal.SIGINT, 1) and "KeyboardInterrupt" in res.stderr, res.stderr
     assert completed > 2
     # an interrupt is handled between writes: the extend in flight either
     # landed whole or not at all

@@ -419,7 +419,9 @@ def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):
 
     monkeypatch.setattr(AsyncArray, "setitem", slow)
     path = tmp_path / "m.zarr"
-    st = ZarrStorage(path, 1000, chunk_rows=64, commit_interval=0.05)
+    # in-process commits: the patched write runs in this process (the worker process has
+    # the same wait: flush() returns when the worker's reply to the commit arrives)
+    st = ZarrStorage(path, 1000, chunk_rows=64, commit_interval=0.05, commit_process=False)
     rb = TensorDictReplayBuffer(storage=st, batch_size=4)
     rb.extend(make_rows(torch.arange(10)))
     assert started.wait(30), "the timer commit never started"

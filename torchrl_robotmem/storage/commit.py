@@ -19,6 +19,7 @@ The engine reads rows through its owner (the storage): ``owner._copy_chunk(c)``
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 import time
 from typing import Any
@@ -28,6 +29,7 @@ import torch
 from zarr.core.sync import sync as zarr_sync
 
 from . import _backend
+from ._commit_worker import CommitWorker
 
 __all__ = ["CommitEngine"]
 
@@ -47,9 +49,13 @@ class CommitEngine:
         background (bool): commit from a background thread (``False``: every
             :meth:`kick` commits before returning).
         name (str): thread name suffix.
+        worker_path (str, optional): the local directory of the store, to have the
+            commit worker process (:mod:`._commit_worker`) split and write the
+            chunks instead of this process; ``None`` writes them here.
     """
 
-    def __init__(self, owner: Any, group: Any, *, commit_interval: float, background: bool, name: str) -> None:
+    def __init__(self, owner: Any, group: Any, *, commit_interval: float, background: bool, name: str,
+                 worker_path: str | None = None) -> None:
         self.owner = owner
         self.group = group
         self.commit_interval = float(commit_interval)
@@ -67,6 +73,12 @@ class CommitEngine:
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.committed_len = 0  # committed length (transitions)
+        self.worker_path = worker_path
+        self._worker_synced = False  # the worker drops what it cached of this store on our first request
+        self._via_worker = False  # switched on (once) when the worker is ready; in-process until then
+        self._route_lock = threading.RLock()
+        if worker_path is not None:
+            CommitWorker.get()  # start it now: its imports overlap the first rows being written
 
     # -- bookkeeping (called under ``cv``) ----------------------------------------
 
@@ -90,6 +102,56 @@ class CommitEngine:
 
     def reset_arrays(self) -> None:
         self.arrays.clear()
+        with self._route_lock:
+            if self._via_worker and self._worker_synced:
+                self._worker_request({"op": "reset", "path": self.worker_path})
+
+    def _use_worker(self) -> bool:
+        """Whether commits go through the worker; switches over (once) when it is ready."""
+        if self._via_worker or self.worker_path is None:
+            return self._via_worker
+        with self._route_lock:  # no in-process attribute write races the switch
+            if not self._via_worker and CommitWorker.get().ready():
+                self._worker_open()
+                self._via_worker = True
+        return self._via_worker
+
+    def update_attrs(self, update: dict) -> None:
+        """Writes store attributes; through the worker once it commits (so no update is lost)."""
+        with self._route_lock:
+            if self._use_worker():
+                self._worker_request({"op": "attrs", "path": self.worker_path, "update": update})
+            else:
+                self.group.update_attributes(update)
+
+    def _worker_open(self) -> None:
+        """(Re)opens the store in the worker, with a copy of the writer lock's descriptor.
+
+        Another handle, or this process before the switch, may have written the
+        store since the worker last saw it: it reopens the group and its arrays.
+        """
+        lock = getattr(self.owner, "_lock_file", None)
+        fd = getattr(lock, "_fd", None)
+        CommitWorker.get().request({"op": "open", "path": self.worker_path}, fds=[fd] if fd is not None else [])
+        self._worker_synced = True
+
+    def _worker_request(self, header: dict, payloads: list | tuple = ()) -> None:
+        if not self._worker_synced:
+            self._worker_open()
+        CommitWorker.get().request(header, payloads)
+
+    def close(self) -> None:
+        """Lets the worker forget this store (after the last commit); never starts one."""
+        if self.worker_path is None or not self._worker_synced:
+            return
+        self._worker_synced = False
+        worker = CommitWorker._instance
+        if worker is None or worker.pid != os.getpid() or worker.proc.poll() is not None:
+            return
+        try:
+            worker.request({"op": "close", "path": self.worker_path})
+        except Exception:  # noqa: BLE001 - closing: nothing left to write
+            pass
 
     # -- the writer thread ----------------------------------------------------------
 
@@ -170,16 +232,21 @@ class CommitEngine:
                 self.first_dirty_time = None
             self.inflight += 1
         try:
-            # split into arrays outside the lock: the foreground only waited for the memcpy
-            payload = {c: owner._chunk_arrays(snap) for c, snap in snapshots.items()}
-            if overwrite:
-                self._write_journal(payload, meta)
-            self._write_chunks(payload)
-            if meta is not None or overwrite:
-                update = dict(meta or {})
-                if overwrite:
-                    update["journal"] = None
-                self.group.update_attributes(update)
+            with self._route_lock:  # an in-process commit and a switch to the worker never overlap
+                via_worker = self._use_worker()
+                if not via_worker:
+                    # split into arrays outside the cv lock: the foreground only waited for the memcpy
+                    payload = {c: owner._chunk_arrays(snap) for c, snap in snapshots.items()}
+                    if overwrite:
+                        self._write_journal(payload, meta)
+                    self._write_chunks(payload)
+                    if meta is not None or overwrite:
+                        update = dict(meta or {})
+                        if overwrite:
+                            update["journal"] = None
+                        self.group.update_attributes(update)
+            if via_worker:
+                self._commit_in_worker(snapshots, meta, overwrite)
         except BaseException as err:  # surfaced to the foreground on its next call
             with self.cv:
                 self.inflight -= 1
@@ -195,6 +262,31 @@ class CommitEngine:
                 self.committed_len = int(meta["len"])
                 self.flush_done = max(self.flush_done, target)
             self.cv.notify_all()
+
+    def _commit_in_worker(self, snapshots: dict, meta: dict | None, overwrite: bool) -> None:
+        """Sends the packed snapshots to the commit worker, which splits and writes them."""
+        owner = self.owner
+        layout = next(iter(snapshots.values()))[1] if snapshots else None  # None: a metadata-only commit
+        header = {
+            "op": "commit",
+            "path": self.worker_path,
+            "chunk_rows": owner._chunk_rows,
+            "row_bytes": layout.row_bytes if layout is not None else 0,
+            "inner": list(owner._inner_shape or ()),
+            "fields": [[path, off, nbytes, _backend.numpy_dtype(dtype).str, list(shape)]
+                       for path, off, nbytes, dtype, shape in (layout.fields if layout is not None else ())
+                       if path in owner._schema],
+            "chunks": [[c, int(snap[0].shape[0])] for c, snap in snapshots.items()],
+            "overwrite": overwrite,
+            "meta": meta,
+        }
+        if overwrite:
+            header["journal_arrays"] = [
+                [path, [owner._max_dim0, *owner._inner_shape, *spec["shape"]],
+                 _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).str]
+                for path, spec in owner._schema.items()
+            ]
+        self._worker_request(header, [snap[0].numpy() for snap in snapshots.values()])
 
     def _array(self, path: str) -> Any:
         arr = self.arrays.get(path)

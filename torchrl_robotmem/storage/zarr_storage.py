@@ -96,6 +96,14 @@ class ZarrStorage(LazyTensorStorage):
             can lose. Defaults to 1.0.
         background (bool, optional): write to Zarr from a background thread
             (default). ``False`` makes every write durable before ``set`` returns.
+        commit_process (bool, optional): with ``background``, have a child process
+            (one per Python process, shared by its stores) split, compress and write
+            the chunks, so that Zarr's Python-heavy write path does not compete
+            with the training loop for the GIL; the background thread only copies
+            each chunk once and hands it over a socket. Defaults to ``True`` for
+            local stores unless the environment sets
+            ``TORCHRL_ROBOTMEM_COMMIT_PROCESS=0``; URL, zip and in-memory stores
+            always commit in-process.
         storage_options (dict, optional): passed to fsspec for URL stores.
         device (str, optional): device of the RAM mirror. Defaults to ``"cpu"``.
         compilable (bool, optional): as in TorchRL (keeps ``len`` in a plain int
@@ -151,6 +159,7 @@ class ZarrStorage(LazyTensorStorage):
         compression_level: int = 1,
         commit_interval: float = 1.0,
         background: bool = True,
+        commit_process: bool | None = None,
         storage_options: dict | None = None,
         device: str = "cpu",
         compilable: bool = False,
@@ -185,6 +194,7 @@ class ZarrStorage(LazyTensorStorage):
                 f"opened for writing: run `robotmem repair PATH`), got {on_damage!r} with read_only={read_only}."
             )
         self._on_damage = on_damage
+        self._commit_process = commit_process
         self.path = _backend.normalize_path(path)
         self.read_only = bool(read_only)
         self._storage_options = storage_options
@@ -206,6 +216,13 @@ class ZarrStorage(LazyTensorStorage):
             raise
 
     # -- opening ----------------------------------------------------------------------
+
+    def _use_worker(self, background: bool) -> bool:
+        if self.read_only or not background or self._local_dir is None:
+            return False
+        if self._commit_process is not None:
+            return bool(self._commit_process)
+        return os.environ.get("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "1") != "0"
 
     def _open(self, max_size, *, env, ndim, chunk_rows, device, compilable, commit_interval, background) -> None:
         store, self._local_dir = _backend.open_store(
@@ -230,8 +247,10 @@ class ZarrStorage(LazyTensorStorage):
                                      decode=not self.read_only and (bool(attrs.get("journal")) or grows))
         stored_max = int(attrs["max_size"])
         super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
-        self._engine = CommitEngine(self, self._group, commit_interval=commit_interval, background=background,
-                                    name=str(self.path))
+        self._engine = CommitEngine(
+            self, self._group, commit_interval=commit_interval, background=background, name=str(self.path),
+            worker_path=str(self._local_dir) if self._use_worker(background) else None,
+        )
         self._sync_attrs(attrs)
         # This session's state.
         self._run: int | None = None  # allocated at the first write
@@ -410,7 +429,7 @@ class ZarrStorage(LazyTensorStorage):
                 arr = self._group[path]
                 arr.resize((self._max_dim0, *arr.shape[1:]))
         self._engine.reset_arrays()
-        self._group.update_attributes({"max_size": new_max})
+        self._engine.update_attrs({"max_size": new_max})
 
     def _load_rows(self, attrs: dict) -> None:
         record = attrs
@@ -943,7 +962,7 @@ class ZarrStorage(LazyTensorStorage):
         self._allocate()
         self.initialized = True
         # Schema first: a store whose arrays exist but whose schema is unknown would not reopen.
-        self._group.update_attributes(
+        self._engine.update_attrs(
             {
                 "schema": schema,
                 "chunk_rows": self._chunk_rows,
@@ -984,7 +1003,7 @@ class ZarrStorage(LazyTensorStorage):
         self._index_schema()
         with self._engine.cv:
             self._allocate()
-        self._group.update_attributes({"schema": self._schema})
+        self._engine.update_attrs({"schema": self._schema})
         with self._own_write():
             self._bump_mutation_revision()
 
@@ -1095,6 +1114,9 @@ class ZarrStorage(LazyTensorStorage):
 
     def _release(self) -> None:
         self._closed = True
+        engine = getattr(self, "_engine", None)
+        if engine is not None:
+            engine.close()
         if getattr(self, "_lock_file", None) is not None:
             self._lock_file.release()
             self._lock_file = None

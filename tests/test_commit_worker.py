@@ -1,0 +1,138 @@
+"""The commit worker process (storage/_commit_worker.py): real stores, real processes."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import make_transitions
+from torchrl.data import ReplayBuffer
+
+from torchrl_robotmem import ZarrStorage
+from torchrl_robotmem.storage._commit_worker import CommitWorker
+
+TESTS = Path(__file__).resolve().parent
+
+
+def _wait_for_worker(storage: ZarrStorage, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not storage._engine._use_worker():
+        assert time.monotonic() < deadline, "the commit worker never became ready"
+        time.sleep(0.05)
+
+
+def _rows_equal(a, b) -> bool:
+    return all(bool((a.get(k) == b.get(k)).all()) for k in b.keys(True, True))
+
+
+def test_commits_go_through_the_worker_and_read_back_bit_exact(tmp_path):
+    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=128)
+    assert st._engine.worker_path == str(tmp_path / "m.zarr")
+    _wait_for_worker(st)
+    rb = ReplayBuffer(storage=st, batch_size=4)
+    data = make_transitions(1500)
+    for lo in range(0, 1500, 100):  # wraps the ring: journalled commits in the worker
+        rb.extend(data[lo : lo + 100])
+    st.flush()
+    worker = CommitWorker._instance
+    assert worker is not None and worker.proc.poll() is None and worker.proc.pid != os.getpid()
+    back = ZarrStorage(tmp_path / "m.zarr", read_only=True)
+    assert len(back) == 1000
+    idx = torch.arange(1000)
+    src = torch.where(idx < 500, idx + 1000, idx)
+    assert _rows_equal(back.get(idx), data[src])
+    # a key added later (schema evolution: attributes written through the worker)
+    extra = data[:10].clone()
+    extra["new_key"] = torch.ones(10, 2)
+    rb.extend(extra)
+    st.close()
+    again = ZarrStorage(tmp_path / "m.zarr", read_only=True)
+    assert "new_key" in again._schema and bool((again.get(torch.arange(500, 510))["new_key"] == 1).all())
+
+
+def test_in_process_commits_when_asked(tmp_path, monkeypatch):
+    st = ZarrStorage(tmp_path / "a.zarr", 100, commit_process=False)
+    assert st._engine.worker_path is None
+    monkeypatch.setenv("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "0")
+    st2 = ZarrStorage(tmp_path / "b.zarr", 100)
+    assert st2._engine.worker_path is None
+    for s in (st, st2):
+        ReplayBuffer(storage=s, batch_size=2).extend(make_transitions(30))
+        s.close()
+        assert len(ZarrStorage(s.path, read_only=True)) == 30
+
+
+def test_a_failed_write_in_the_worker_is_raised_with_its_cause(tmp_path):
+    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=64)
+    _wait_for_worker(st)
+    rb = ReplayBuffer(storage=st, batch_size=4)
+    rb.extend(make_transitions(10))
+    st.flush()
+    # a directory where the next chunk file must go: the worker's write fails
+    (tmp_path / "m.zarr" / "observation" / "c" / "1" / "0").mkdir(parents=True)
+    rb.extend(make_transitions(100, start=10))
+    with pytest.raises(RuntimeError, match=r"background writer .* failed: CommitWorkerError: .*Error"):
+        st.flush()
+    assert len(ZarrStorage(tmp_path / "m.zarr", read_only=True)) == 10  # the commit record did not move
+
+
+CHILD = textwrap.dedent(
+    """
+    import sys, time
+    sys.path.insert(0, {tests!r})
+    import torch
+    from conftest import make_transitions
+    from torchrl.data import ReplayBuffer
+    from torchrl_robotmem import ZarrStorage
+    from torchrl_robotmem.storage._commit_worker import CommitWorker
+
+    st = ZarrStorage({path!r}, 1_000_000, chunk_rows=256)
+    while not st._engine._use_worker():
+        time.sleep(0.02)
+    rb = ReplayBuffer(storage=st, batch_size=4)
+    rb.extend(make_transitions(1000))
+    st.flush()
+    print(CommitWorker._instance.proc.pid, flush=True)
+    i = 1000
+    while True:
+        rb.extend(make_transitions(500, start=i))
+        i += 500
+    """
+)
+
+
+def test_the_worker_dies_with_its_parent_and_the_store_reopens(tmp_path):
+    path = tmp_path / "m.zarr"
+    proc = subprocess.Popen([sys.executable, "-c", CHILD.format(tests=str(TESTS), path=str(path))],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        worker_pid = int(proc.stdout.readline())
+        time.sleep(1.5)  # commits in flight
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(worker_pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.01)
+    else:
+        pytest.fail("the commit worker outlived its parent by 10 s")
+    st = ZarrStorage(path)  # writable: the lock is free again
+    n = len(st)
+    assert n >= 1000
+    data = make_transitions(n)
+    # (the reopen closed the episode the kill interrupted: its last row's done flags changed)
+    keys = ["observation", "action", "achieved_goal", ("next", "observation"), ("next", "reward")]
+    assert _rows_equal(st.get(torch.arange(n)).select(*keys), data.select(*keys))
+    st.close()
