@@ -25,6 +25,7 @@ from typing import Any
 
 import torch
 from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase, is_tensor_collection
+from tensordict.base import _is_leaf_nontensor
 from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, treespec_loads
 
 from . import _backend
@@ -134,7 +135,7 @@ class DataKind:
 def spec_of(row: TensorDictBase) -> dict[str, dict]:
     """``{path: {"dtype", "shape"}}`` of one row (a TensorDict with batch size ``[]``)."""
     spec = {}
-    for key, value in row.items(include_nested=True, leaves_only=True):
+    for key, value in row.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
         if not isinstance(value, torch.Tensor):
             raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
         spec[_backend.key_to_path(key)] = {
@@ -151,7 +152,7 @@ def check_against(schema: dict[str, dict], data: TensorDictBase, batch_dims: int
     stored one, or on a leaf that is not a tensor.
     """
     leaves = {}
-    for key, value in data.items(include_nested=True, leaves_only=True):
+    for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
         if not isinstance(value, torch.Tensor):
             raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
         leaves[_backend.key_to_path(key)] = value

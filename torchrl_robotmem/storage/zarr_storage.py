@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import torchrl
 from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase, is_tensor_collection
+from tensordict.base import _is_leaf_nontensor
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
@@ -875,7 +876,8 @@ class ZarrStorage(LazyTensorStorage):
         if fast is not None:  # hot path: one dict lookup and two comparisons per leaf
             seen = 0
             dims = 1 + len(self._inner_shape)
-            for key, value in data.items(include_nested=True, leaves_only=True):
+            # non-tensor leaves (a string under a new key) are leaves here too: refused below, not dropped
+            for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
                 spec = fast.get(key)
                 if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
                     break
@@ -884,7 +886,7 @@ class ZarrStorage(LazyTensorStorage):
                 if seen == len(fast):
                     return []
         if self._schema is None:
-            for key, value in data.items(include_nested=True, leaves_only=True):
+            for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
                 if not isinstance(value, torch.Tensor):
                     raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
                 _backend.torch_dtype_name(value.dtype)
