@@ -47,6 +47,8 @@ import threading
 from typing import Any
 
 _HEADER = struct.Struct("<Q")
+# seconds the parent waits for one reply (a commit of one chunk takes milliseconds)
+_REPLY_TIMEOUT = float(os.environ.get("TORCHRL_ROBOTMEM_WORKER_TIMEOUT", 300))
 
 
 # -- framing (both sides) ------------------------------------------------------------------
@@ -271,6 +273,7 @@ class CommitWorker:
         self.lock = threading.Lock()
         self.pid = os.getpid()
         self._ready = False
+        self.broken = False
         self.sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             self.proc = subprocess.Popen(
@@ -284,7 +287,7 @@ class CommitWorker:
     def get(cls) -> CommitWorker:
         with cls._instance_lock:
             w = cls._instance
-            if w is None or w.pid != os.getpid() or w.proc.poll() is not None:
+            if w is None or w.pid != os.getpid() or w.broken or w.proc.poll() is not None:
                 w = cls._instance = CommitWorker()
             return w
 
@@ -302,6 +305,15 @@ class CommitWorker:
                 self._await_ready()
         return self._ready
 
+    def _discard(self) -> None:
+        """Stops a worker whose channel is broken; the next request starts a new one."""
+        self.broken = True
+        try:
+            self.proc.kill()
+            self.proc.wait(5)
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+
     def _await_ready(self) -> None:
         frame = read_frame(self.sock)
         if frame is None or not frame[0].get("ready"):
@@ -315,13 +327,21 @@ class CommitWorker:
             if not self._ready:
                 self._await_ready()
             try:
+                # never wait forever: a worker that stops answering is an error, not a hang
+                self.sock.settimeout(_REPLY_TIMEOUT)
                 write_frame(self.sock, header, payloads, fds)
                 frame = read_frame(self.sock)
-            except OSError as err:
+            except OSError as err:  # socket.timeout included
                 frame, why = None, err
+            except BaseException:  # e.g. KeyboardInterrupt mid-frame: the stream cannot be trusted
+                self._discard()
+                raise
             else:
                 why = None
+            finally:
+                self.sock.settimeout(None)
             if frame is None:
+                self._discard()
                 code = self.proc.poll()
                 raise CommitWorkerError(
                     f"the commit worker process (pid {self.proc.pid}) is gone (exit code {code}"
