@@ -304,10 +304,17 @@ _DISK_FULL_CHILD = textwrap.dedent("""
     from torchrl_robotmem import ZarrStorage
     sys.path.insert(0, sys.argv[2])
     from reliability._gen import make_rows
+    import time
+    from torchrl_robotmem.storage._commit_worker import CommitWorker
     st = ZarrStorage(sys.argv[1])
     rb = TensorDictReplayBuffer(storage=st)
+    deadline = time.monotonic() + 120  # commits go through the commit worker process (the default)
+    while st._engine.worker_path is not None and not st._engine._use_worker() and time.monotonic() < deadline:
+        time.sleep(0.02)
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG
     resource.setrlimit(resource.RLIMIT_FSIZE, (64, 64))  # the disk is full: no file grows past 64 bytes
+    if CommitWorker._instance is not None:  # ... for the process that writes the chunks, too
+        resource.prlimit(CommitWorker._instance.proc.pid, resource.RLIMIT_FSIZE, (64, 64))
     rows = make_rows(torch.arange(40, 140))
     rows["observation"] = torch.randn(100, 5)  # incompressible: every chunk file is larger than that
     try:

@@ -29,7 +29,7 @@ import torch
 from zarr.core.sync import sync as zarr_sync
 
 from . import _backend
-from ._commit_worker import CommitWorker
+from ._commit_worker import CommitWorker, CommitWorkerError
 
 __all__ = ["CommitEngine"]
 
@@ -384,8 +384,10 @@ class CommitEngine:
     def raise_error(self) -> None:
         err = self.error
         if err is not None:
+            # a commit worker's error already reads "<its type>: <message>"
+            what = str(err) if isinstance(err, CommitWorkerError) else f"{type(err).__name__}: {err}"
             raise RuntimeError(
-                f"The background writer of {self.name!r} failed: {type(err).__name__}: {err}. "
+                f"The background writer of {self.name!r} failed: {what}. "
                 f"Rows written after the last commit ({self.committed_len} rows) are not "
                 f"durable; fix the cause (disk space, permissions) and reopen the store."
             ) from err
