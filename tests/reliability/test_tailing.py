@@ -56,7 +56,7 @@ def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_pat
         last_n = last_w = 0
         refreshes = rows_checked = newer_rows = 0
         end = time.monotonic() + seconds
-        while time.monotonic() < end or last_w <= MAX_SIZE:
+        while time.monotonic() < end or last_w <= MAX_SIZE or refreshes < 3:  # (slow refreshes on a busy box)
             assert time.monotonic() < end + 60, f"the ring never wrapped (write_count {last_w})"
             n = reader.refresh()
             W = int(reader.state_dict()["zarr"]["write_count"])
