@@ -32,7 +32,7 @@ def _rows_equal(a, b) -> bool:
 
 
 def test_commits_go_through_the_worker_and_read_back_bit_exact(tmp_path):
-    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=128)
+    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=128, commit_process=True)
     assert st._engine.worker_path == str(tmp_path / "m.zarr")
     _wait_for_worker(st)
     rb = ReplayBuffer(storage=st, batch_size=4)
@@ -56,20 +56,23 @@ def test_commits_go_through_the_worker_and_read_back_bit_exact(tmp_path):
     assert "new_key" in again._schema and bool((again.get(torch.arange(500, 510))["new_key"] == 1).all())
 
 
-def test_in_process_commits_when_asked(tmp_path, monkeypatch):
-    st = ZarrStorage(tmp_path / "a.zarr", 100, commit_process=False)
+def test_in_process_commits_by_default_and_the_worker_on_request(tmp_path, monkeypatch):
+    monkeypatch.delenv("TORCHRL_ROBOTMEM_COMMIT_PROCESS", raising=False)
+    st = ZarrStorage(tmp_path / "a.zarr", 100)
     assert st._engine.worker_path is None
-    monkeypatch.setenv("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "0")
+    monkeypatch.setenv("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "1")
     st2 = ZarrStorage(tmp_path / "b.zarr", 100)
-    assert st2._engine.worker_path is None
-    for s in (st, st2):
+    assert st2._engine.worker_path == str(tmp_path / "b.zarr")
+    st3 = ZarrStorage(tmp_path / "c.zarr", 100, commit_process=False)
+    assert st3._engine.worker_path is None
+    for s in (st, st2, st3):
         ReplayBuffer(storage=s, batch_size=2).extend(make_transitions(30))
         s.close()
         assert len(ZarrStorage(s.path, read_only=True)) == 30
 
 
 def test_a_failed_write_in_the_worker_is_raised_with_its_cause(tmp_path):
-    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=64)
+    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=64, commit_process=True)
     _wait_for_worker(st)
     rb = ReplayBuffer(storage=st, batch_size=4)
     rb.extend(make_transitions(10))
@@ -92,7 +95,7 @@ CHILD = textwrap.dedent(
     from torchrl_robotmem import ZarrStorage
     from torchrl_robotmem.storage._commit_worker import CommitWorker
 
-    st = ZarrStorage({path!r}, 1_000_000, chunk_rows=256)
+    st = ZarrStorage({path!r}, 1_000_000, chunk_rows=256, commit_process=True)
     while not st._engine._use_worker():
         time.sleep(0.02)
     rb = ReplayBuffer(storage=st, batch_size=4)
