@@ -65,8 +65,10 @@ def _run_child(tmp_path: Path, body: str, *, signal_after_ready: int | None = No
     script.write_text(_PRELUDE + textwrap.dedent(body))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     cmd = [sys.executable, str(script), str(path), str(counter_path), *args]
+    # as launched from a terminal: a shell starts background jobs (`make test &`) with SIGINT
+    # ignored, and an ignored signal stays ignored across exec; Ctrl-C must reach the child
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=tmp_path)
+                            cwd=tmp_path, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     if signal_after_ready is not None:
         line = proc.stdout.readline()
         assert line.strip() == "ready", f"child did not start: {line!r} {proc.stderr.read()}"
