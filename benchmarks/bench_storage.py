@@ -53,8 +53,8 @@ def configs(with_variants: bool):
         "LazyTensorStorage": lambda d, n: LazyTensorStorage(n),
         "LazyMemmapStorage": lambda d, n: LazyMemmapStorage(n, scratch_dir=d),
         DEFAULT: lambda d, n: ZarrStorage(d, n),
-        # the same, with commits written by the commit worker process instead of a background thread
-        "Zarr commit worker": lambda d, n: ZarrStorage(d, n, commit_process=True),
+        # the same, with commits written by the background thread instead of the commit worker process
+        "Zarr in-process commits": lambda d, n: ZarrStorage(d, n, commit_process=False),
     }
     if with_variants:
         out.update(
@@ -298,7 +298,7 @@ def main():
         print(f"\nReopen {args.rows:,}-row store in a fresh process (median of 3, page cache warm): "
               f"ZarrStorage(path) {reopen['open_s']:.2f} s (writable), read_only {reopen['open_read_only_s']:.2f} s; "
               f"imports {reopen['import_s']:.2f} s.")
-    for name in [n for n in (DEFAULT, "Zarr commit worker") if n in results]:
+    for name in [n for n in (DEFAULT, "Zarr in-process commits") if n in results]:
         per_rep = ", ".join(
             f"{r['extend_fg_rows_s'] / 1e3:,.0f}k ({r['extend_fg_rows_s'] / m['extend_fg_rows_s']:.2f}x memmap)"
             for r, m in zip(results[name], results["LazyMemmapStorage"])

@@ -56,15 +56,15 @@ def test_commits_go_through_the_worker_and_read_back_bit_exact(tmp_path):
     assert "new_key" in again._schema and bool((again.get(torch.arange(500, 510))["new_key"] == 1).all())
 
 
-def test_in_process_commits_by_default_and_the_worker_on_request(tmp_path, monkeypatch):
+def test_the_worker_by_default_and_in_process_commits_on_request(tmp_path, monkeypatch):
     monkeypatch.delenv("TORCHRL_ROBOTMEM_COMMIT_PROCESS", raising=False)
     st = ZarrStorage(tmp_path / "a.zarr", 100)
-    assert st._engine.worker_path is None
-    monkeypatch.setenv("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "1")
+    assert st._engine.worker_path == str(tmp_path / "a.zarr")
+    monkeypatch.setenv("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "0")
     st2 = ZarrStorage(tmp_path / "b.zarr", 100)
-    assert st2._engine.worker_path == str(tmp_path / "b.zarr")
-    st3 = ZarrStorage(tmp_path / "c.zarr", 100, commit_process=False)
-    assert st3._engine.worker_path is None
+    assert st2._engine.worker_path is None
+    st3 = ZarrStorage(tmp_path / "c.zarr", 100, commit_process=True)
+    assert st3._engine.worker_path == str(tmp_path / "c.zarr")
     for s in (st, st2, st3):
         ReplayBuffer(storage=s, batch_size=2).extend(make_transitions(30))
         s.close()

@@ -103,8 +103,7 @@ class ZarrStorage(LazyTensorStorage):
             with the training loop for the GIL; the background thread only copies
             each chunk once and hands it over a socket. Local stores only (URL,
             zip and in-memory stores always commit in-process). Defaults to
-            ``False`` unless the environment sets ``TORCHRL_ROBOTMEM_COMMIT_PROCESS=1``
-            (opt-in while a rare lost Ctrl-C under heavy load is investigated).
+            ``True`` unless the environment sets ``TORCHRL_ROBOTMEM_COMMIT_PROCESS=0``.
         storage_options (dict, optional): passed to fsspec for URL stores.
         device (str, optional): device of the RAM mirror. Defaults to ``"cpu"``.
         compilable (bool, optional): as in TorchRL (keeps ``len`` in a plain int
@@ -223,7 +222,7 @@ class ZarrStorage(LazyTensorStorage):
             return False
         if self._commit_process is not None:
             return bool(self._commit_process)
-        return os.environ.get("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "0") == "1"
+        return os.environ.get("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "1") != "0"
 
     def _open(self, max_size, *, env, ndim, chunk_rows, device, compilable, commit_interval, background) -> None:
         store, self._local_dir = _backend.open_store(
