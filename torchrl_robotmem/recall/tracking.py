@@ -26,7 +26,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers.storages import Storage, TensorStorage
 
-from torchrl_robotmem.storage.columns import has_rows, read_column
+from torchrl_robotmem.storage.columns import has_rows, read_column, read_rows
 
 __all__ = ["ColumnTracker", "as_tensor_storage", "live_column", "stored_rows"]
 
@@ -70,15 +70,13 @@ def live_column(storage: Storage, key: NestedKey) -> torch.Tensor | None:
 def stored_rows(storage: Storage, rows: torch.Tensor) -> TensorDictBase | None:
     """Every stored entry of ``rows`` (int64, any shape; ``-1`` reads row 0), or ``None`` before the first write.
 
-    Read from the column TensorDict that :mod:`~torchrl_robotmem.storage.columns`
-    reads (``storage._storage``), not through ``storage.get``: a
-    ``ZarrStorage`` keeps its ``episode`` / ``run`` / ``env`` tags out of
-    sampled batches unless ``sample_tags=True``, and a recall returns them.
+    Read with :func:`~torchrl_robotmem.storage.columns.read_rows`, not through
+    ``storage.get``: a ``ZarrStorage`` keeps its ``episode`` / ``run`` / ``env``
+    tags out of sampled batches unless ``sample_tags=True``, and a recall returns them.
     """
     if not has_rows(storage):
         return None
-    data = storage._storage
-    return data[rows.clamp_min(0).to(getattr(data, "device", None) or "cpu")]
+    return read_rows(storage, rows)
 
 
 def _key_str(key: NestedKey) -> str:

@@ -13,7 +13,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-__all__ = ["has_rows", "read_column"]
+__all__ = ["has_rows", "read_column", "read_rows"]
 
 
 def _key_str(key: NestedKey) -> str:
@@ -44,3 +44,23 @@ def read_column(storage: Any, key: NestedKey, n: int | None = None) -> torch.Ten
         keys = sorted(_key_str(k) for k in data.keys(True, True)) if isinstance(data, TensorDictBase) else []
         raise KeyError(f"the storage has no column {_key_str(key)}; available keys: {', '.join(keys)}.")
     return col if n is None else col[:n]
+
+
+def read_rows(storage: Any, rows: torch.Tensor) -> TensorDictBase:
+    """Every stored column of ``rows`` (int64, any shape; ``-1`` reads row 0), tags included.
+
+    Unlike ``storage.get``, this returns the columns a ``ZarrStorage`` keeps out of
+    sampled batches (its ``episode`` / ``run`` / ``env`` tags).
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage
+        >>> st = LazyTensorStorage(10)
+        >>> st.set(range(3), TensorDict({"g": torch.arange(3.0)}, [3]))
+        >>> read_rows(st, torch.tensor([2, -1]))["g"].tolist()
+        [2.0, 0.0]
+    """
+    data = storage._storage
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"{type(storage).__name__} keeps no TensorDict of rows; read_rows needs a TensorDict-backed storage.")
+    return data[rows.clamp_min(0).to(getattr(data, "device", None) or "cpu")]
