@@ -11,7 +11,7 @@ import pickle
 
 import pytest
 import torch
-from tensordict import LazyStackedTensorDict, TensorDict, tensorclass
+from tensordict import LazyStackedTensorDict, NonTensorData, NonTensorStack, TensorDict, tensorclass
 from torchrl.data import (
     LazyTensorStorage,
     ReplayBuffer,
@@ -26,6 +26,12 @@ from torchrl_robotmem import ZarrStorage
 class Transition:
     obs: torch.Tensor
     reward: torch.Tensor
+
+
+@tensorclass
+class Labelled:
+    obs: torch.Tensor
+    task: str
 
 
 def _td(n, start=0, **extra):
@@ -76,6 +82,40 @@ def test_tensorclasses_round_trip(tmp_path):
     st = ZarrStorage(path, read_only=True)
     out = st[torch.arange(5)]
     assert isinstance(out, Transition) and torch.equal(out.reward, torch.arange(5.0))
+
+
+def test_non_tensor_entries_are_kept_as_one_value_per_store(tmp_path):
+    """A tensorclass's ``str`` field (and a NonTensorData in a TensorDict) is kept, in JSON metadata."""
+    path = tmp_path / "t.zarr"
+    rb = ReplayBuffer(storage=ZarrStorage(path, 100), batch_size=4)
+    rb.extend(Labelled(obs=torch.randn(5, 3), task="push", batch_size=[5]))
+    rb.extend(Labelled(obs=torch.randn(2, 3), task="push", batch_size=[2]))
+    assert rb.sample().task == "push"
+    with pytest.raises(ValueError, match=r"'task' holds 'slide'.*holds 'push'"):
+        rb.extend(Labelled(obs=torch.randn(2, 3), task="slide", batch_size=[2]))
+    assert len(rb) == 7 and rb.writer._cursor == 7  # the refused write changed nothing
+    rb.storage.dumps(tmp_path / "ckpt")
+    copy = ZarrStorage(tmp_path / "copy.zarr", 100)
+    copy.loads(tmp_path / "ckpt")
+    assert copy[torch.arange(7)].task == "push" and torch.equal(copy[torch.arange(7)].obs, rb.storage[:7].obs)
+    rb.storage.close()
+    again = ZarrStorage(path, read_only=True)
+    assert again[torch.arange(3)].task == "push" and again.summary()["constants"] == {"task": "push"}
+
+    td_rb = ReplayBuffer(storage=ZarrStorage(tmp_path / "d.zarr", 100), batch_size=3)
+    td_rb.extend(TensorDict({"x": torch.zeros(4), "tag": NonTensorData("a", batch_size=[4])}, [4]))
+    assert td_rb.sample()["tag"] == "a"
+    with pytest.raises(KeyError, match=r"missing non-tensor keys \['tag'\]"):
+        td_rb.extend(TensorDict({"x": torch.zeros(4)}, [4]))
+    rows = NonTensorStack(*[NonTensorData(s) for s in "abab"])
+    with pytest.raises(ValueError, match=r"'tag' holds different non-tensor values"):
+        td_rb.extend(TensorDict({"x": torch.zeros(4), "tag": rows}, [4]))
+    with pytest.raises(TypeError, match=r"'blob' holds a non-tensor value of type dict"):
+        td_rb.extend(TensorDict({"x": torch.zeros(4), "tag": NonTensorData("a", batch_size=[4]),
+                                 "blob": NonTensorData({"k": 1}, batch_size=[4])}, [4]))
+    with pytest.raises(TypeError, match=r"'x' holds a non-tensor value.*tensor of dtype float32"):
+        td_rb.extend(TensorDict({"x": NonTensorData("oops", batch_size=[4]), "tag": NonTensorData("a", batch_size=[4])}, [4]))
+    assert len(td_rb) == 4
 
 
 def test_kinds_do_not_mix(tmp_path):

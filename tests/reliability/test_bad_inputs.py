@@ -28,7 +28,7 @@ from typing import Any
 
 import pytest
 import torch
-from tensordict import TensorDict
+from tensordict import NonTensorData, NonTensorStack, TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_robotmem import GoalIndex, ZarrStorage, recall
@@ -143,8 +143,13 @@ CASES = [
          lambda c: c.rb.extend(_drop(c.rows(4), ("next", "reward")))),
     Case("missing-nested", "the whole `nested` sub-TensorDict left out", KeyError, r"missing keys.*nested",
          lambda c: c.rb.extend(_drop(c.rows(4), "nested"))),
-    Case("extra-non-tensor", "an extra key holding a string (non-tensor data)", TypeError, r"extra.*tensors only",
-         lambda c: c.rb.extend(_with(c.rows(4), "extra", "hello"))),
+    Case("extra-non-tensor", "an extra key holding a dict (non-tensor data that is not a JSON scalar)", TypeError,
+         r"extra.*non-tensor value of type dict", lambda c: c.rb.extend(_with(c.rows(4), "extra", NonTensorData({"a": 1}, batch_size=[4])))),
+    Case("non-tensor-rows", "an extra key holding a different string per row", ValueError,
+         r"extra.*different non-tensor values",
+         lambda c: c.rb.extend(_with(c.rows(4), "extra", NonTensorStack(*[NonTensorData(s) for s in "abcd"])))),
+    Case("string-for-tensor", "a string under `observation` (stored as a float32 tensor)", TypeError,
+         r"observation.*non-tensor.*float32", lambda c: c.rb.extend(_with(c.rows(4), "observation", "hello"))),
     Case("extra-bad-dtype", "an extra key of dtype complex64", (TypeError, ValueError), r"complex",
          lambda c: c.rb.extend(_with(c.rows(4), "extra", torch.zeros(4, dtype=torch.complex64)))),
     Case("empty", "an empty batch (0 rows)", ValueError, r"empty",

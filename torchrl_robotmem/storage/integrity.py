@@ -272,6 +272,11 @@ def check_attributes(attrs: dict) -> list[Problem]:
     names = attrs.get("env_names", [])
     if not isinstance(names, list) or not all(isinstance(x, str) for x in names):
         bad("env_names", f"must be a list of names, got {str(names)[:80]}")
+    constants = attrs.get("constants") or {}
+    if not isinstance(constants, dict) or not all(
+        isinstance(k, str) and (v is None or isinstance(v, (str, int, float, bool))) for k, v in constants.items()
+    ):
+        bad("constants", f"must map keys to JSON scalars, got {str(constants)[:80]}")
     env = attrs.get("env")
     if env is not None and not isinstance(env, str):
         bad("env", f"must be a name or null, got {env!r}")

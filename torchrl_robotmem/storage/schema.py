@@ -30,7 +30,7 @@ from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, tr
 
 from . import _backend
 
-__all__ = ["DataKind", "PackedLayout", "check_against", "spec_of"]
+__all__ = ["DataKind", "PackedLayout", "check_against", "spec_of", "split_constants", "with_constants"]
 
 
 # -- data kinds ------------------------------------------------------------------------
@@ -127,6 +127,73 @@ class DataKind:
     def tag_columns(self) -> bool:
         """Whether sampled data carries the tag columns (only TensorDicts have room for them)."""
         return self.kind == "tensordict"
+
+
+# -- constants: non-tensor entries -------------------------------------------------------
+
+#: The non-tensor values a store keeps: JSON scalars, in the group's metadata.
+CONSTANT_TYPES = (str, int, float, bool, type(None))
+
+
+def split_constants(td: TensorDictBase, skip: tuple = ("env",)) -> dict[str, Any]:
+    """Pops the non-tensor leaves of ``td`` (in place) and returns ``{path: value}``.
+
+    A store keeps a non-tensor entry (a tensorclass's ``str`` field, a
+    ``NonTensorData`` in a TensorDict) as *one value shared by every row*, in
+    its metadata as JSON, as ``LazyMemmapStorage`` keeps it in its metadata.
+    Nothing is pickled. ``skip`` names leaves with their own meaning (a
+    non-tensor ``"env"`` names the environment of each row).
+
+    Raises, naming the key, on a value that is not a JSON scalar
+    (``str``, ``int``, ``float``, ``bool``, ``None``) or on rows that carry
+    different values.
+
+    Example:
+        >>> from tensordict import NonTensorData
+        >>> td = TensorDict({"x": torch.zeros(2), "text": NonTensorData("hi", batch_size=[2])}, [2])
+        >>> split_constants(td), list(td.keys())
+        ({'text': 'hi'}, ['x'])
+    """
+    found = {}
+    for key, value in list(td.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor)):
+        if isinstance(value, torch.Tensor) or key in skip:
+            continue
+        if isinstance(value, NonTensorStack):
+            values = _flat(value.tolist())
+            if any(v != values[0] or type(v) is not type(values[0]) for v in values[1:]):
+                raise ValueError(
+                    f"Key {key!r} holds different non-tensor values across rows ({_preview(values)}). "
+                    f"ZarrStorage keeps a non-tensor entry only as one value shared by every row (in the "
+                    f"store's metadata); store per-row values as a tensor (e.g. integer codes)."
+                )
+            value = values[0] if values else None
+        elif isinstance(value, NonTensorData):
+            value = value.data
+        if not isinstance(value, CONSTANT_TYPES):
+            raise TypeError(
+                f"Key {key!r} holds a non-tensor value of type {type(value).__name__}; ZarrStorage stores "
+                f"tensors, and non-tensor entries only as one str / int / float / bool / None value shared "
+                f"by every row (nothing stored is ever pickled). Convert it to a tensor or drop the key."
+            )
+        found[_backend.key_to_path(key)] = value
+        td.pop(key)
+    return found
+
+
+def _flat(x: Any) -> list:
+    return [v for item in x for v in _flat(item)] if isinstance(x, list) else [x]
+
+
+def _preview(values: list) -> str:
+    uniq = list(dict.fromkeys(repr(v) for v in values))
+    return ", ".join(uniq[:3]) + (", ..." if len(uniq) > 3 else "")
+
+
+def with_constants(td: TensorDictBase, constants: dict[str, Any]) -> TensorDictBase:
+    """``td`` with every constant set as a ``NonTensorData`` of ``td``'s batch size."""
+    for path, value in constants.items():
+        td.set(_backend.path_to_key(path), NonTensorData(value, batch_size=td.batch_size, device=td.device))
+    return td
 
 
 # -- schema ---------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from . import _backend, integrity, lifecycle, writer_sync
 from ._backend import FORMAT_MARKER, FORMAT_VERSION
 from .checkpointer import ZarrCheckpointer
 from .commit import CommitEngine
-from .schema import DataKind, PackedLayout, check_against, env_names_of, spec_of
+from .schema import DataKind, PackedLayout, check_against, env_names_of, spec_of, split_constants, with_constants
 from .tags import TAG_KEYS, UNKNOWN_ENV, EpisodeTagger, open_episode_ends
 
 __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
@@ -328,6 +328,7 @@ class ZarrStorage(LazyTensorStorage):
         """Persistent bookkeeping, mirrored from the group attributes."""
         self._chunk_rows = attrs.get("chunk_rows")
         self._schema: dict[str, dict] | None = attrs.get("schema")
+        self._constants: dict[str, Any] = dict(attrs.get("constants") or {})  # non-tensor entries
         self._kind = DataKind.from_json(attrs.get("kind"))
         inner = attrs.get("inner_shape")
         self._inner_shape: tuple[int, ...] = tuple(inner) if inner is not None else ()
@@ -648,7 +649,7 @@ class ZarrStorage(LazyTensorStorage):
     def set(self, cursor, data, *, set_cursor: bool = True):
         try:
             self._check_writable()
-            data, n, new_paths = self._prepare(cursor, data, set_cursor)
+            data, n, new_paths, new_constants = self._prepare(cursor, data, set_cursor)
         except Exception:
             if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
                 rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
@@ -662,6 +663,9 @@ class ZarrStorage(LazyTensorStorage):
                 self._init_schema(data, _is_int_cursor(cursor))
             elif new_paths:
                 self._evolve_schema(data, new_paths, _is_int_cursor(cursor))
+            if new_constants:
+                self._constants = {**self._constants, **new_constants}
+                self._engine.update_attrs({"constants": dict(self._constants)})
             rows = dirty = _cursor_rows(cursor, self._max_dim0)
             if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
                 dirty = slice(int(rows[0]), int(rows[-1]) + 1)
@@ -742,11 +746,12 @@ class ZarrStorage(LazyTensorStorage):
             self._lock_file.check()  # an object-store lease can be lost
         self._engine.raise_error()
 
-    def _prepare(self, cursor, data, set_cursor: bool) -> tuple[TensorDictBase, int, list]:
+    def _prepare(self, cursor, data, set_cursor: bool) -> tuple[TensorDictBase, int, list, dict]:
         """Validates ``data`` and adds the tag columns (no side effects).
 
-        Returns the TensorDict to store, the number of transitions and the paths
-        of keys the store does not hold yet.
+        Returns the TensorDict to store, the number of transitions, the paths
+        of keys the store does not hold yet and the non-tensor entries (constants)
+        it does not hold yet.
         """
         single = _is_int_cursor(cursor)
         if isinstance(data, list):
@@ -835,7 +840,15 @@ class ZarrStorage(LazyTensorStorage):
                 run = torch.full(lead, -1, dtype=torch.long)
         for key in TAG_KEYS:
             td.pop(key, None)
-        new_paths = self._validate(td, single)
+        fast = self._matches_schema(td)  # the hot path: the keys, dtypes and shapes the store holds, no more
+        new_constants = {} if fast else self._check_constants(split_constants(td))
+        new_paths = [] if fast else self._validate(td, single)
+        clash = [p for p in new_paths if p in self._constants]
+        if clash:
+            raise TypeError(
+                f"Key {_backend.path_to_key(clash[0])!r} is a tensor here, but the store at {self.path!r} holds it as "
+                f"a non-tensor value ({self._constants[clash[0]]!r}); every write must keep a key's kind."
+            )
         if self._schema is None:
             # recorded with the schema at the first write
             self._kind = getattr(self, "_kind_override", None) or kind
@@ -848,7 +861,35 @@ class ZarrStorage(LazyTensorStorage):
             td.set("env", self._expand_tag(env, lead, td.batch_size))
         if single:
             td = td[0]
-        return td, n, new_paths
+        return td, n, new_paths, new_constants
+
+    def _check_constants(self, found: dict[str, Any]) -> dict[str, Any]:
+        """The non-tensor entries of a write against the store's; returns the new ones."""
+        new = {}
+        for path, value in found.items():
+            key = _backend.path_to_key(path)
+            if self._schema is not None and path in self._schema:
+                raise TypeError(
+                    f"Key {key!r} holds a non-tensor value ({value!r}), but the store at {self.path!r} holds it "
+                    f"as a tensor of dtype {self._schema[path]['dtype']}; every write must keep a key's kind."
+                )
+            if path not in self._constants:
+                new[path] = value
+            elif self._constants[path] != value or type(self._constants[path]) is not type(value):
+                raise ValueError(
+                    f"Key {key!r} holds {value!r}, but the store at {self.path!r} holds {self._constants[path]!r} "
+                    f"for it. ZarrStorage keeps a non-tensor entry as one value shared by every row (in the "
+                    f"store's metadata, as LazyMemmapStorage does); store per-row values as a tensor (e.g. "
+                    f"integer codes), or use another store."
+                )
+        missing = [p for p in self._constants if p not in found]
+        if missing and self._schema is not None:
+            raise KeyError(
+                f"The data does not match the schema of the store at {self.path!r}: missing non-tensor keys "
+                f"{[_backend.path_to_key(p) for p in missing]} (held as {[self._constants[p] for p in missing]}). "
+                f"Every write must carry the keys the store holds."
+            )
+        return new
 
     @staticmethod
     def _expand_tag(value, lead: torch.Size, batch: torch.Size) -> torch.Tensor:
@@ -867,23 +908,29 @@ class ZarrStorage(LazyTensorStorage):
         Nothing is written. The tag columns (``episode``, ``run``, ``env``) are
         ignored; a store with no rows yet accepts any supported dtypes.
         """
-        self._validate(data.exclude(*TAG_KEYS, *_DROPPED_KEYS), False)
+        data = data.exclude(*TAG_KEYS, *_DROPPED_KEYS)
+        self._check_constants(split_constants(data))
+        self._validate(data, False)
+
+    def _matches_schema(self, data: TensorDictBase) -> bool:
+        """Whether ``data`` holds exactly the store's tensor keys, dtypes and row shapes (no constants)."""
+        fast = self._schema_by_key
+        if fast is None or self._constants:
+            return False
+        seen = 0
+        dims = 1 + len(self._inner_shape)
+        # one dict lookup and two comparisons per leaf; a non-tensor leaf is a leaf here (never in ``fast``)
+        for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
+            spec = fast.get(key)
+            if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
+                return False
+            seen += 1
+        return seen == len(fast)
 
     def _validate(self, data: TensorDictBase, single: bool) -> list[str]:
         """Raises, naming the key, on a dtype / shape change; returns the paths of new keys."""
-        fast = self._schema_by_key
-        if fast is not None:  # hot path: one dict lookup and two comparisons per leaf
-            seen = 0
-            dims = 1 + len(self._inner_shape)
-            # non-tensor leaves (a string under a new key) are leaves here too: refused below, not dropped
-            for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
-                spec = fast.get(key)
-                if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
-                    break
-                seen += 1
-            else:
-                if seen == len(fast):
-                    return []
+        if self._matches_schema(data):
+            return []
         if self._schema is None:
             for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
                 if not isinstance(value, torch.Tensor):
@@ -1037,7 +1084,10 @@ class ZarrStorage(LazyTensorStorage):
         if isinstance(index, list):
             index = torch.as_tensor(index)
         packed = self._packed if self._is_full else self._packed[: self._len_along_dim0]
-        return self._kind.from_tensordict(self._layout.views(packed[index], self._hidden))
+        rows = self._layout.views(packed[index], self._hidden)
+        if self._constants:
+            rows = with_constants(rows, self._constants)
+        return self._kind.from_tensordict(rows)
 
     def _copy_chunk(self, c: int) -> tuple[torch.Tensor, dict]:
         """A snapshot of chunk ``c``: ONE copy of its packed rows (taken under the engine's lock).
@@ -1181,6 +1231,7 @@ class ZarrStorage(LazyTensorStorage):
                 "kind": self._kind.to_json(),
                 "ndim": self.ndim,
                 "tags": tags,
+                "constants": dict(self._constants),
             },
         }
 
@@ -1213,6 +1264,8 @@ class ZarrStorage(LazyTensorStorage):
                 rows.update(tags[:n0])
                 table = torch.tensor([self.env_code(x, create=True) for x in meta.get("env_names", [])] + [-1])
                 rows.set("env", table[rows.get("env").clamp(min=-1)])
+            if meta.get("constants"):
+                rows = with_constants(rows.clone(False), meta["constants"])
             kind = DataKind.from_json(meta.get("kind")) if meta.get("kind") else None
             if kind is not None and kind.kind != "tensordict" and self._schema is None:
                 self._kind = kind  # written as a TensorDict, read back as the source's kind
@@ -1285,6 +1338,8 @@ class ZarrStorage(LazyTensorStorage):
         else:
             out["episodes"] = out["runs"] = 0
         out["envs"] = self.env_names
+        if self._constants:
+            out["constants"] = {str(_backend.path_to_key(p)): v for p, v in self._constants.items()}
         out["bytes_on_disk"] = _backend.store_size_bytes(self._local_dir)
         return out
 
