@@ -23,15 +23,21 @@ directory named ``NAME-vVERSION``) or from ``--format``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
+import shutil
 import warnings
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from . import CLIError
+
+if TYPE_CHECKING:
+    from torchrl_robotmem.storage import ZarrStorage
 from ._memory import DONE_KEY, SUCCESS_KEY, column, has_key, open_memory, root_attrs, write_order
 
 __all__ = ["export_npz", "import_npz", "export_minari", "import_minari", "add_arguments", "run"]
@@ -156,7 +162,6 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
     import torch
     from tensordict import TensorDict
 
-    from torchrl_robotmem.storage import ZarrStorage
 
     _check_target(path)
     if not os.path.isfile(src):
@@ -185,8 +190,7 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
     capacity = int(max_size or meta.get("max_size") or rows)
     if capacity < rows:
         raise CLIError(f"--max-size {capacity} is smaller than the {rows} rows in {src!r}")
-    storage = ZarrStorage(path, capacity, ndim=ndim, background=False)
-    try:
+    with _new_store(path, capacity, ndim=ndim, background=False) as storage:
         if rows:
             tag_arrays = {k: arrays.pop(k) for k in TAGS if k in arrays}
             lead = next(iter(tag_arrays.values())).shape if tag_arrays else None
@@ -204,11 +208,6 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
             storage.load_state_dict({"_storage": td, "_len": rows, "initialized": True, "zarr": zarr_meta})
         elif env is not None:
             storage.env = env
-        storage.close()
-    except BaseException:
-        storage.close()
-        _remove_store(path)  # nothing half-imported is left behind
-        raise
     return rows
 
 
@@ -223,11 +222,20 @@ def _nest(flat: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _remove_store(path: str) -> None:
-    import shutil
+@contextlib.contextmanager
+def _new_store(path: str, capacity: int, **kwargs) -> Iterator[ZarrStorage]:
+    """A new store for an import: closed at the end, removed if the import fails (nothing half-imported is left)."""
+    from torchrl_robotmem.storage import ZarrStorage
 
-    if os.path.isdir(path):
-        shutil.rmtree(path, ignore_errors=True)
+    storage = ZarrStorage(path, capacity, **kwargs)
+    try:
+        yield storage
+    except BaseException:
+        storage.close()
+        if os.path.isdir(path):
+            shutil.rmtree(path, ignore_errors=True)
+        raise
+    storage.close()
 
 
 # -- Minari ------------------------------------------------------------------------------------------
@@ -405,7 +413,6 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
     from tensordict import TensorDict
     from torchrl.data import ReplayBuffer
 
-    from torchrl_robotmem.storage import ZarrStorage
 
     _check_target(path)
     ds = _open_minari(src)
@@ -428,8 +435,7 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
             return t.to(torch_dtype(spec["dtype"])).reshape(len(t), *spec["shape"])
         return t.to(dtype).reshape(len(t), *shape) if dtype is not None else t
 
-    storage = ZarrStorage(path, capacity, background=True)
-    try:
+    with _new_store(path, capacity, background=True) as storage:
         rb = ReplayBuffer(storage=storage, batch_size=1)
         for i, ep in enumerate(_progress(ds.iterate_episodes(), total=ds.total_episodes, desc="import", unit="episode")):
             T = len(ep.actions) if not isinstance(ep.actions, dict) else len(next(iter(ep.actions.values())))
@@ -461,11 +467,6 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
             storage.env = name if name is not None else spec_env
             rb.extend(TensorDict(td, batch_size=[T]))
         rows = len(storage)
-        storage.close()
-    except BaseException:
-        storage.close()
-        _remove_store(path)  # nothing half-imported is left behind
-        raise
     return rows
 
 
