@@ -114,6 +114,29 @@ def test_every_env_group_composes(group):
     assert cfg.replay_buffer.storage._target_ == "torchrl_robotmem.ZarrStorage"
 
 
+def test_critic_layer_norm_option(tmp_path):
+    """network.critic_layer_norm=true puts a LayerNorm after each hidden layer of the critic only."""
+    from hydra import compose, initialize_config_dir
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    from utils import GoalNormalizer, make_agent, make_environment
+
+    with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["network.hidden_sizes=[16,8]", "network.critic_layer_norm=true",
+                                           f"memory.path={tmp_path / 'm.zarr'}"])
+    train_env, eval_env = make_environment(cfg)
+    try:
+        (actor, critic), _ = make_agent(cfg, train_env, GoalNormalizer())
+        norms = [m.normalized_shape for m in critic.modules() if isinstance(m, torch.nn.LayerNorm)]
+        assert norms == [(16,), (8,)]
+        assert not any(isinstance(m, torch.nn.LayerNorm) for m in actor.modules())
+        td = train_env.reset()
+        assert critic(actor(td))["state_action_value"].shape[-1] == 1
+    finally:
+        train_env.close()
+        eval_env.close()
+
+
 def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     """memory.prior: a scripted FetchPush memory, read-only, half of every batch (issue 9)."""
     from recipes.scripted.collect import main as collect

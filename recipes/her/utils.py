@@ -309,8 +309,12 @@ def make_agent(cfg: DictConfig, env, normalizer: GoalNormalizer):
     else:
         raise ValueError(f"algo.name must be SAC, TD3 or DDPG, got {algo!r}.")
 
+    critic_mlp = dict(mlp)
+    if cfg.network.get("critic_layer_norm", False):  # RLPD (Ball et al., 2023): LayerNorm after each hidden layer
+        critic_mlp.update(norm_class=nn.LayerNorm,
+                          norm_kwargs=[{"normalized_shape": h} for h in cfg.network.hidden_sizes])
     qvalue = ValueOperator(
-        GoalMLP(["action", *in_keys], normalizer, out_features=1, **mlp), in_keys=["action", *in_keys]
+        GoalMLP(["action", *in_keys], normalizer, out_features=1, **critic_mlp), in_keys=["action", *in_keys]
     )
     model = nn.ModuleList([actor, qvalue])
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
