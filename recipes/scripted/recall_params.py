@@ -1,8 +1,7 @@
 """Recall the parameters of remembered scripted episodes by goal geometry.
 
-Every row of an episode carries the same geometry, so the ``k`` nearest
-*episodes* are the first ``k`` distinct episode ids among the ``k * T``
-nearest rows (``T`` = episode length).
+Every row of an episode carries the same geometry; ``one_per_episode=True``
+makes the ``k`` results ``k`` different episodes.
 """
 from __future__ import annotations
 
@@ -34,7 +33,6 @@ def recall_episodes(
     *,
     env: str | Sequence[str] | None = None,
     success_only: bool = True,
-    episode_len: int = 50,
 ) -> TensorDictBase:
     """One row (the nearest) of each of the ``k`` episodes nearest to ``query``.
 
@@ -43,12 +41,8 @@ def recall_episodes(
     (``("params", name)``, ``episode``, ``env``, ...) and ``distance``.
     """
     q = torch.as_tensor(np.atleast_1d(np.asarray(query, dtype=np.float32)))
-    out = index.recall(q, k * episode_len, success_only=success_only, env=env)
-    out = out[out["mask"]]
-    if out.shape[0] == 0:
-        return out
-    _, first = np.unique(out["episode"].numpy(), return_index=True)
-    return out[torch.from_numpy(np.sort(first)[:k])]
+    out = index.recall(q, k, success_only=success_only, env=env, one_per_episode=True)
+    return out[out["mask"]]
 
 
 def mean_params(rows: TensorDictBase, names: Sequence[str]) -> dict[str, float] | None:
