@@ -147,8 +147,12 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     n_prior = len(ZarrStorage(prior, read_only=True))
     assert n_prior == 100
     s = run_recipe(tmp_path, "env=pick_and_place", f"memory.path={tmp_path / 'own.zarr'}",
-                   f"memory.prior=[{prior}]", "memory.prior_ratio=0.5")
+                   f"memory.prior=[{prior}]", "memory.prior_ratio=0.5",
+                   "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50")
     assert s["memory_rows_after"] == 50 and s["updates"] > 0
+    logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/prior_ratio.csv")).read_text()
+    ratios = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
+    assert ratios == [0.3, 0.1]  # annealed from 0.5: after 25 and 50 of 50 frames
     # the prior memory is only read
     assert len(ZarrStorage(prior, read_only=True)) == n_prior
     # a prior written for another observation layout is refused with the reason
@@ -172,3 +176,71 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     assert f"| {s['cpu_s']:.0f} |" in rows[2] and png.stat().st_size > 0
     with pytest.raises(FileNotFoundError, match="not a recipes/her run"):
         compare.load_run(str(tmp_path / "bad" / "nothing"))
+
+
+def test_a_killed_run_resumes_from_its_last_evaluation(tmp_path):
+    """collector.resume=true: SIGKILL mid-run, launch again, the run ends where an unbroken one would."""
+    import signal
+    import time
+
+    from torchrl.checkpoint import Checkpoint
+
+    from torchrl_robotmem import ZarrStorage
+
+    mem, agent = tmp_path / "mem.zarr", tmp_path / "mem.zarr-agent"
+    args = [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, f"memory.path={mem}", "collector.total_frames=150",
+            "collector.resume=true", f"hydra.run.dir={tmp_path / 'out'}"]
+    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    meta = {}
+    while time.monotonic() < deadline and proc.poll() is None:
+        if Checkpoint.is_checkpoint(agent):
+            meta = Checkpoint.manifest(agent)["metadata"]
+            if meta["frames"] >= 50:
+                break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "the run ended before it could be killed: make it longer"
+    assert not meta["finished"] and meta["frames"] >= 50 and [f for f, _ in meta["curve"]][:2] == [0, 50]
+    with ZarrStorage(mem, read_only=True) as store:
+        rows = len(store)
+    assert rows >= meta["memory_rows"]
+
+    done = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert f"run resumed at {rows} frames" in done.stdout
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    # the frames of the killed process count, the curve goes on, nothing is evaluated twice
+    assert s["frames"] == 150 and s["memory_rows_after"] == 150 and s["memory_rows_before"] == 0
+    frames = [f for f, _ in s["curve"]]
+    assert frames[: len(meta["curve"])] == [f for f, _ in meta["curve"]] and frames[-1] == 150
+    assert frames == sorted(set(frames)) and s["cpu_s"] > meta["cpu_s"] and s["updates"] > meta["updates"]
+    assert Checkpoint.manifest(agent)["metadata"]["finished"]
+    # launched again: nothing left to do, nothing added
+    again = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and "after 150 new env frames" in again.stdout
+    with ZarrStorage(mem, read_only=True) as store:
+        assert len(store) == 150
+    # a memory with rows but no checkpoint is refused, not counted as this run's frames
+    other = tmp_path / "other.zarr"
+    run_recipe(tmp_path, f"memory.path={other}", out="other")
+    import shutil
+
+    shutil.rmtree(tmp_path / "other.zarr-agent")
+    refused = subprocess.run([sys.executable, str(RECIPE_DIR / "train.py"), *TINY, f"memory.path={other}",
+                              "collector.resume=true", f"hydra.run.dir={tmp_path / 'bad'}"],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert refused.returncode != 0 and "no agent checkpoint" in refused.stderr
+
+
+def test_prior_ratio_schedule():
+    from omegaconf import OmegaConf
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    from utils import prior_ratio
+
+    cfg = OmegaConf.create({"memory": {"prior_ratio": 0.5, "prior_ratio_final": None, "prior_anneal_frames": 0}})
+    assert prior_ratio(cfg, 0) == prior_ratio(cfg, 10**6) == 0.5
+    cfg.memory.prior_ratio_final, cfg.memory.prior_anneal_frames = 0.1, 1000
+    assert [round(prior_ratio(cfg, f), 6) for f in (0, 500, 1000, 5000)] == [0.5, 0.3, 0.1, 0.1]

@@ -11,7 +11,8 @@ reached ``--target``::
         "from scratch=bench_results/prior/scratch-push-s0"
 
 A run still in progress has no ``summary.json`` yet: its curve is read from the
-CSV logger's ``eval/success_rate.csv`` instead (its CPU time shows as "partial").
+CSV logger's ``eval/success_rate.csv`` files instead (all of them: a run resumed
+with ``collector.resume=true`` logs to one more; its CPU time shows as "partial").
 """
 from __future__ import annotations
 
@@ -31,14 +32,16 @@ def load_run(run_dir: str) -> dict:
     files = glob.glob(os.path.join(run_dir, "her_logging", "*", "scalars", "eval", "success_rate.csv"))
     if not files:
         raise FileNotFoundError(f"{run_dir!r}: no summary.json and no eval/success_rate.csv: not a recipes/her run.")
-    curve = []
-    with open(max(files, key=os.path.getmtime)) as f:
-        for row in csv.reader(f):
-            if len(row) >= 2:
-                try:
-                    curve.append([int(float(row[0])), float(row[1])])
-                except ValueError:
-                    continue  # header
+    points: dict[int, float] = {}
+    for name in sorted(files, key=os.path.getmtime):  # a resumed run logs to one more CSV: later wins
+        with open(name) as f:
+            for row in csv.reader(f):
+                if len(row) >= 2:
+                    try:
+                        points[int(float(row[0]))] = float(row[1])
+                    except ValueError:
+                        continue  # header
+    curve = [[x, points[x]] for x in sorted(points)]
     return {"dir": run_dir, "curve": curve, "frames": curve[-1][0] if curve else 0, "cpu_s": None,
             "running": True}
 

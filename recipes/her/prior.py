@@ -61,9 +61,7 @@ class PriorMix:
     """
 
     def __init__(self, own, priors: list, ratio: float, env_name: str, keys: list, example=None) -> None:
-        if not 0.0 <= ratio <= 1.0:
-            raise ValueError(f"memory.prior_ratio must be in [0, 1], got {ratio}.")
-        self.own, self.priors, self.ratio = own, priors, float(ratio)
+        self.own, self.priors, self.ratio = own, priors, ratio
         self.reward_fn = make_reward_fn(env_name)
         self.keys = keys
         sizes = torch.tensor([float(len(p)) for p in priors])
@@ -85,6 +83,17 @@ class PriorMix:
                     f"than {env_name}'s (missing {missing}; shapes {wrong}): e.g. FetchReach's 10-d "
                     "observation vs FetchPush's 25-d. Use memories of tasks with the same layout."
                 )
+
+    @property
+    def ratio(self) -> float:
+        """Share of each batch drawn from the priors (settable: an annealing schedule sets it)."""
+        return self._ratio
+
+    @ratio.setter
+    def ratio(self, value: float) -> None:
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"memory.prior_ratio must be in [0, 1], got {value}.")
+        self._ratio = float(value)
 
     @property
     def rows(self) -> int:

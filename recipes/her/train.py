@@ -14,10 +14,16 @@ update, log, evaluate), with three changes:
 * ``memory.prior=[path, ...]``: read-only memories of other runs, tasks or
   scripted controllers, sampled beside the run's own buffer (``prior.py``).
 
+The agent (networks, optimiser, normaliser) is saved next to the memory at every
+evaluation, with the run's progress (frames, curve, CPU time) in the
+checkpoint's metadata: ``collector.resume=true`` continues a run that was
+stopped (killed, out of time) from its last evaluation, on the same memory.
+
     python recipes/her/train.py                        # SAC, FetchReach-v4
     python recipes/her/train.py algo=td3 env=push seed=1
     python recipes/her/train.py replay_buffer.storage._target_=torchrl.data.LazyTensorStorage
     python recipes/her/train.py env=push 'memory.prior=[memory/scripted/push.zarr]'
+    python recipes/her/train.py env=push collector.total_frames=60000 collector.resume=true  # again after a kill
 """
 from __future__ import annotations
 
@@ -40,6 +46,7 @@ from utils import (
     append_history,
     current_goals,
     evaluate,
+    first_reach,
     loss_keys,
     make_agent,
     make_collector,
@@ -50,8 +57,10 @@ from utils import (
     make_sampler,
     make_storage,
     plot_success,
+    prior_ratio,
     read_history,
     refresh_recall,
+    run_progress,
 )
 
 
@@ -93,6 +102,8 @@ def main(cfg: DictConfig):  # noqa: F821
     if priors:
         mix = PriorMix(replay_buffer, priors, cfg.memory.prior_ratio, cfg.env.name, TRANSITION_KEYS,
                        example=train_env.fake_tensordict())
+        mix.ratio = prior_ratio(cfg, cfg.memory.prior_anneal_frames or 0)  # both ends of a schedule in [0, 1]
+        mix.ratio = prior_ratio(cfg, 0)
 
     # Create agent, loss, optimiser
     normalizer = GoalNormalizer()
@@ -100,7 +111,8 @@ def main(cfg: DictConfig):  # noqa: F821
     loss_module, target_net_updater = make_loss_module(cfg, model)
     optimizer = make_optimizer(cfg, loss_module)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
-    resumed = bool(cfg.memory.resume_agent) and Checkpoint.is_checkpoint(checkpoint_path)
+    progress = run_progress(cfg, checkpoint_path, remembered)  # collector.resume: where the run stopped
+    resumed = (bool(cfg.memory.resume_agent) or progress is not None) and Checkpoint.is_checkpoint(checkpoint_path)
     if resumed:
         try:
             checkpoint.load(checkpoint_path)
@@ -112,11 +124,15 @@ def main(cfg: DictConfig):  # noqa: F821
             ) from err
     elif remembered:
         normalizer.update(replay_buffer[:])  # fresh networks: statistics of the whole memory
+    if progress is not None:
+        remembered = progress["memory_rows_before"]
+        if len(replay_buffer) > progress["memory_rows"]:  # collected after the last checkpoint
+            normalizer.update(replay_buffer.storage[progress["memory_rows"]:len(replay_buffer)])
     if mix is not None and not resumed:
         for buffer in priors:
             normalizer.update(buffer[:].select(*mix.keys, strict=False))
     keys = loss_keys(cfg)
-    num_updates = 0
+    num_updates = progress["updates"] if progress else 0
 
     def update(batch):
         nonlocal num_updates
@@ -134,12 +150,29 @@ def main(cfg: DictConfig):  # noqa: F821
         num_updates += 1
         return loss_td.select(*keys).detach()
 
+    # frames of this run so far: every row it added to its memory (a resumed run
+    # counts the rows collected after its last checkpoint too)
+    collected_frames = len(replay_buffer) - remembered if progress else 0
     print(
-        f"{algo}+HER on {cfg.env.name} | memory {memory_path}: {remembered} transitions"
+        f"{algo}+HER on {cfg.env.name} | memory {memory_path}: {len(replay_buffer)} transitions"
         + (" | agent resumed from checkpoint" if resumed else "")
+        + (f" | run resumed at {collected_frames} frames" if progress else "")
     )
-    cpu = CpuClock()
-    curve: list[tuple[int, float]] = []
+    cpu = CpuClock(offset=progress["cpu_s"] if progress else 0.0)
+    curve: list[tuple[int, float]] = [tuple(point) for point in progress["curve"]] if progress else []
+    if progress:  # other episodes than the first launch's
+        torch.manual_seed(cfg.seed + collected_frames)
+        np.random.seed(cfg.seed + collected_frames)
+
+    def save(finished: bool) -> None:
+        """The agent, and the run's progress in the checkpoint's metadata (one atomic write)."""
+        with cpu.paused():
+            checkpoint.save(checkpoint_path, metadata={
+                "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "updates": num_updates,
+                "memory_rows_before": remembered, "memory_rows": len(replay_buffer),
+                "frames": collected_frames, "cpu_s": cpu.seconds(), "curve": [list(p) for p in curve],
+                "finished": finished,
+            })
 
     def log_eval(frames: int) -> float:
         with cpu.paused():
@@ -163,23 +196,26 @@ def main(cfg: DictConfig):  # noqa: F821
     if (remembered or mix is not None) and not resumed and cfg.memory.pretrain_updates:
         for _ in tqdm.trange(cfg.memory.pretrain_updates, desc="updates on the memory", leave=False):
             update(sample())
-    success = log_eval(0)
+    success = curve[-1][1] if curve else log_eval(0)
+    save(finished=False)
 
     # Main loop
+    init_random_frames = max(0, cfg.collector.init_random_frames - remembered - collected_frames)
     collector = make_collector(
-        cfg, train_env, exploration_policy,
-        init_random_frames=max(0, cfg.collector.init_random_frames - remembered),
+        cfg, train_env, exploration_policy, init_random_frames=init_random_frames,
+        total_frames=max(cfg.collector.total_frames - collected_frames, 1),
+        seed=cfg.seed + collected_frames,
     )
-    init_random_frames = collector.init_random_frames
     utd_ratio = cfg.optim.utd_ratio
     eval_iter = cfg.logger.eval_iter
     target = cfg.logger.target_success
     budget = cfg.collector.cpu_budget_s
-    collected_frames = 0
-    reached_at = 0 if target is not None and success >= target else None
-    pbar = tqdm.tqdm(total=cfg.collector.total_frames, desc=f"{algo} {cfg.env.name}", leave=False)
+    reached_at = first_reach(curve, target)
+    done_already = reached_at is not None or collected_frames >= cfg.collector.total_frames
+    pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=collected_frames,
+                     desc=f"{algo} {cfg.env.name}", leave=False)
 
-    for data in (collector if reached_at is None else ()):
+    for data in (collector if not done_already else ()):
         # Extend: flat transitions; recalled priors are recomputed at sampling
         data = data.reshape(-1).exclude(*RECALL_KEYS, *[("next", k) for k in RECALL_KEYS])
         replay_buffer.extend(data)
@@ -190,6 +226,9 @@ def main(cfg: DictConfig):  # noqa: F821
 
         # Update
         metrics = {}
+        if mix is not None:
+            mix.ratio = prior_ratio(cfg, collected_frames)
+            metrics["train/prior_ratio"] = mix.ratio
         if collected_frames >= init_random_frames:
             n = max(1, int(frames * utd_ratio))
             losses = TensorDict(batch_size=[n])
@@ -212,6 +251,7 @@ def main(cfg: DictConfig):  # noqa: F821
         # Evaluate
         if collected_frames % eval_iter < frames:
             success = log_eval(collected_frames)
+            save(finished=False)
             pbar.set_postfix(success=f"{success:.2f}")
             if target is not None and success >= target:
                 reached_at = collected_frames
@@ -225,7 +265,7 @@ def main(cfg: DictConfig):  # noqa: F821
         log_eval(collected_frames)
 
     # Save the agent next to its memory; persist the memory
-    checkpoint.save(checkpoint_path, metadata={"env": cfg.env.name, "algo": algo, "updates": num_updates})
+    save(finished=True)
     storage = replay_buffer.storage
     if hasattr(storage, "flush"):
         storage.flush()

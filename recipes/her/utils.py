@@ -154,17 +154,83 @@ def make_environment(cfg: DictConfig, memory=None):
     return train_env, eval_env
 
 
-def make_collector(cfg: DictConfig, train_env, policy, init_random_frames: int) -> Collector:
+def make_collector(
+    cfg: DictConfig, train_env, policy, init_random_frames: int,
+    total_frames: int | None = None, seed: int | None = None,
+) -> Collector:
+    """The collector of the run (``total_frames`` and ``seed`` default to the config's)."""
     collector = Collector(
         train_env,
         policy,
         frames_per_batch=cfg.collector.frames_per_batch,
-        total_frames=cfg.collector.total_frames,
+        total_frames=cfg.collector.total_frames if total_frames is None else total_frames,
         init_random_frames=init_random_frames,
         device=cfg.collector.device,
     )
-    collector.set_seed(cfg.seed)
+    collector.set_seed(cfg.seed if seed is None else seed)
     return collector
+
+
+def prior_ratio(cfg: DictConfig, frames: int) -> float:
+    """Share of a batch drawn from ``memory.prior`` after ``frames`` new env frames.
+
+    ``memory.prior_ratio`` throughout, or, with ``memory.prior_ratio_final`` set,
+    linear from ``prior_ratio`` to ``prior_ratio_final`` over ``memory.prior_anneal_frames``.
+    """
+    start, final = cfg.memory.prior_ratio, cfg.memory.get("prior_ratio_final")
+    horizon = cfg.memory.get("prior_anneal_frames") or 0
+    if final is None or horizon <= 0:
+        return float(start)
+    t = min(1.0, frames / horizon)
+    return float(start + t * (final - start))
+
+
+def first_reach(curve, target: float | None) -> int | None:
+    """Frames of the first evaluation of ``curve`` at or above ``target`` (``None``: never, or no target)."""
+    if target is None:
+        return None
+    return next((int(x) for x, y in curve if y >= target), None)
+
+
+def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dict | None:
+    """Where a stopped run stands, for ``collector.resume=true`` (``None``: start the run fresh).
+
+    The progress is the metadata of the agent checkpoint that the run saves at
+    every evaluation. Nothing to resume (no checkpoint, empty memory) starts a
+    fresh run; a memory with rows but no progress is refused, since its rows
+    would be counted as an earlier run's.
+    """
+    if not cfg.collector.get("resume"):
+        return None
+    from torchrl.checkpoint import Checkpoint
+
+    if not Checkpoint.is_checkpoint(checkpoint_path):
+        if memory_rows:
+            raise RuntimeError(
+                f"collector.resume=true: the memory holds {memory_rows} transitions but there is no agent "
+                f"checkpoint at {checkpoint_path} to resume from (the run was stopped before its first "
+                "evaluation?). Start it again on a fresh memory.path, or drop collector.resume."
+            )
+        return None
+    meta = Checkpoint.manifest(checkpoint_path).get("metadata") or {}
+    missing = [k for k in ("frames", "curve", "cpu_s", "memory_rows", "memory_rows_before", "updates") if k not in meta]
+    if missing:
+        raise RuntimeError(
+            f"collector.resume=true: the checkpoint at {checkpoint_path} has no run progress ({missing} missing "
+            "from its metadata; written by an older recipe?). Use memory.resume_agent=true to start a new run "
+            "from its networks instead."
+        )
+    if meta.get("env") != cfg.env.name or meta.get("seed") != cfg.seed:
+        raise RuntimeError(
+            f"collector.resume=true: the checkpoint at {checkpoint_path} is of env={meta.get('env')} "
+            f"seed={meta.get('seed')}, this run is env={cfg.env.name} seed={cfg.seed}."
+        )
+    if memory_rows < meta["memory_rows"]:
+        raise RuntimeError(
+            f"collector.resume=true: the memory holds {memory_rows} transitions, fewer than the "
+            f"{meta['memory_rows']} of the checkpoint at {checkpoint_path}: not the memory of this run."
+        )
+    return meta
 
 
 @torch.no_grad()
@@ -413,8 +479,8 @@ def loss_keys(cfg: DictConfig) -> tuple[str, ...]:
 class CpuClock:
     """Process CPU seconds, with ``paused()`` sections (evaluation) left out."""
 
-    def __init__(self):
-        self._start = time.process_time()
+    def __init__(self, offset: float = 0.0):
+        self._start = time.process_time() - offset  # offset: CPU-seconds of the run before a resume
         self._excluded = 0.0
 
     @contextlib.contextmanager
