@@ -62,3 +62,20 @@ def test_cross_env_command_end_to_end(tmp_path):
     assert (out / "cross_env.png").stat().st_size > 0
     report = (out / "report.md").read_text()
     assert "Primary contrast" in report and "| learned arm, seed |" in report
+    # learned_only: the learned arm alone, next to the saved scripted arms; runs are resumed and extended,
+    # and the pooled memory is rebuilt when the workdir lost it
+    import shutil
+
+    shutil.rmtree(tmp_path / "mem" / "seed0.zarr")
+    again = run.main([
+        f"out={out}", f"workdir={tmp_path / 'mem'}", "learned_only=true",
+        "learned_frames=200", "learned_seeds=1", "learned_eval_episodes=1", "learned_eval_iter=100",
+        "learned_overrides=collector.init_random_frames=50;memory.pretrain_updates=5;optim.batch_size=16;"
+        "network.hidden_sizes=[16,16];replay_buffer.size=1000;logger.backend=",
+    ])
+    assert again["summary"] == saved["summary"]  # scripted arms untouched
+    for arm in ("prior", "scratch"):
+        (run_,) = again["learned"]["runs"][arm]
+        assert run_["frames"] == 200 and run_["memory_rows_after"] == 200
+        assert [f for f, _ in run_["curve"]] == [0, 100, 200]  # continued, not restarted
+    assert json.loads((out / "results.json").read_text())["config"]["learned_frames"] == 200

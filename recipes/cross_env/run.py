@@ -7,6 +7,7 @@ One command builds the memories, runs every arm on the same FetchSlide episodes
     python -m recipes.cross_env.run                       # the pre-registered experiment (docs/cross_env.md)
     python -m recipes.cross_env.run seeds=1 episodes=2 push_episodes=2 slide_episodes=2 \
         tune_episodes=2 speeds=0.8 out=/tmp/cross_env     # smoke run
+    python -m recipes.cross_env.run learned_only=true learned_frames=60000   # the learned arm alone, resumable
 
 Per seed (replicate) ``s`` one memory (a :class:`~torchrl_robotmem.ZarrStorage`)
 holds ``push_episodes`` noisy scripted FetchPush episodes and ``slide_episodes``
@@ -171,7 +172,9 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, ou
     ``memory.prior=[memory]`` (sampled as half of every batch, rewards recomputed
     for FetchSlide, hindsight relabelling on its rows too). Each run is a
     subprocess writing its own memory under ``workdir/learned`` and its curve
-    (``summary.json``) under ``out/learned``.
+    (``summary.json``) under ``out/learned``. Runs are launched with
+    ``collector.resume=true``: the command run again continues runs that were
+    stopped and keeps finished ones (``learned_only=true`` skips the scripted arms).
 
     Args:
         memory: the pooled memory (FetchPush + FetchSlide scripted episodes).
@@ -191,15 +194,17 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, ou
             name = f"{arm}-s{seed}"
             run_dir = os.path.abspath(os.path.join(out, "learned", name))
             mem = os.path.abspath(os.path.join(workdir, "learned", f"{name}.zarr"))
-            for p in (mem, f"{mem}-agent", f"{mem}-runs.jsonl"):
-                if os.path.isdir(p):
-                    shutil.rmtree(p)
-                elif os.path.exists(p):
-                    os.remove(p)
+            if not os.path.isdir(f"{mem}-agent"):  # nothing to resume: start this run afresh
+                for p in (mem, f"{mem}-runs.jsonl"):
+                    if os.path.isdir(p):
+                        shutil.rmtree(p)
+                    elif os.path.exists(p):
+                        os.remove(p)
+            # collector.resume: a run stopped earlier (killed, out of time) continues, a finished one is kept
             cmd = [sys.executable, train, "env=slide", f"seed={seed}", f"memory.path={mem}",
                    f"collector.total_frames={frames}", f"logger.eval_iter={eval_iter}",
                    f"logger.eval_episodes={eval_episodes}", "logger.plot=false", f"hydra.run.dir={run_dir}",
-                   *(overrides or [])]
+                   "collector.resume=true", *(overrides or [])]
             if arm == "prior":
                 cmd.append(f"memory.prior=[{os.path.abspath(memory)}]")
             log(f"learned arm: {name}: {' '.join(cmd[1:])}")
@@ -365,6 +370,8 @@ def _parse(argv):
     p.add_argument("--learned_eval_episodes", type=int, default=100)
     p.add_argument("--learned_eval_iter", type=int, default=2500)
     p.add_argument("--learned_overrides", default="", help="extra hydra overrides for both arms, separated by ';'")
+    p.add_argument("--learned_only", type=lambda v: str(v).lower() in ("1", "true", "yes"), default=False,
+                   help="true: only run (or continue) the learned arm, next to the scripted arms of out/results.json")
     return p.parse_args(kv_args(argv))
 
 
@@ -378,6 +385,8 @@ def main(argv: list[str] | None = None) -> dict:
     def log(msg):
         print(f"[{time.time() - t0:7.1f}s] {msg}", flush=True)
 
+    if args.learned_only:
+        return learned_only(args, log)
     speeds = [float(v) for v in str(args.speeds).split(",")]
     baseline, tune_table = tune_baseline(speeds, args.tune_episodes, log)
     log(f"baseline strike_speed = {baseline.strike_speed}")
@@ -416,16 +425,50 @@ def main(argv: list[str] | None = None) -> dict:
             overrides=[o for o in str(args.learned_overrides).split(";") if o], log=log),
         "seconds": round(time.time() - t0, 1),
     }
-    with open(os.path.join(args.out, "results.json"), "w") as f:
+    return write_results(res, args.out)
+
+
+def write_results(res: dict, out: str) -> dict:
+    """``results.json``, ``report.md``, ``cross_env.png`` (and ``learned.png``) under ``out``."""
+    cfg = res["config"]
+    with open(os.path.join(out, "results.json"), "w") as f:
         json.dump(res, f, indent=1)
     md = report_md(res)
-    with open(os.path.join(args.out, "report.md"), "w") as f:
+    with open(os.path.join(out, "report.md"), "w") as f:
         f.write(md)
-    plot(res["summary"], os.path.join(args.out, "cross_env.png"),
-         f"FetchSlide success, {args.seeds} seeds x {args.episodes} paired episodes per arm (95% Wilson CI; dots: seeds)")
-    plot_learned(res["learned"], os.path.join(args.out, "learned.png"))
+    plot(res["summary"], os.path.join(out, "cross_env.png"),
+         f"FetchSlide success, {cfg['seeds']} seeds x {cfg['episodes']} paired episodes per arm "
+         "(95% Wilson CI; dots: seeds)")
+    plot_learned(res["learned"], os.path.join(out, "learned.png"))
     print(md)
     return res
+
+
+def learned_only(args: argparse.Namespace, log) -> dict:
+    """Run (or continue) the learned arm alone, next to the scripted arms of ``out/results.json``.
+
+    The pooled memory of replicate 0 is rebuilt from the recorded baseline when
+    ``workdir`` no longer holds it (the same seeds give the same episodes).
+    """
+    path = os.path.join(args.out, "results.json")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"learned_only=true needs the scripted arms' {path}: run the command without it first.")
+    with open(path) as f:
+        res = json.load(f)
+    if not res["config"]["seeds"]:
+        raise ValueError(f"{path} was run with seeds=0: no pooled memory to learn from.")
+    memory = os.path.join(args.workdir, "seed0.zarr")
+    if not os.path.isdir(memory):
+        cfg = res["config"]
+        build_memory(memory, 0, cfg["push_episodes"], cfg["slide_episodes"], StrikeParams(**res["baseline"]), log)
+    t0 = time.time()
+    res["learned"] = learned_arm(
+        memory, frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir, out=args.out,
+        eval_episodes=args.learned_eval_episodes, eval_iter=args.learned_eval_iter,
+        overrides=[o for o in str(args.learned_overrides).split(";") if o], log=log)
+    res["config"].update({k: v for k, v in vars(args).items() if k.startswith("learned")})
+    res["learned_seconds"] = round(time.time() - t0, 1)
+    return write_results(res, args.out)
 
 
 if __name__ == "__main__":
