@@ -24,9 +24,12 @@ DEMO_ARGS ?= memory.path=memory/demo/FetchReach-v4.zarr logger.target_success=0.
 demo: install
 	$(PY) recipes/her/train.py $(DEMO_ARGS)
 
+# two pytest workers (pytest-xdist): most tests wait on subprocesses, so two
+# workers on two cores take ~0.8x the wall time of one. PYTEST_ARGS="-n 0": serial.
+PYTEST_ARGS ?= -n 2
 test: install
 	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes
