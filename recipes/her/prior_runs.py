@@ -1,0 +1,112 @@
+"""The prior-memory experiments of docs/results.md (sections 8-9), as one resumable queue.
+
+Every run is ``recipes/her/train.py`` with 60k new env frames, 100 deterministic
+evaluation episodes every 2500 frames and ``collector.resume=true``: launching
+this script again (next session, after a kill) continues each stopped run from
+its last evaluation and skips finished ones. ``--jobs`` runs go at a time
+(two on a 2-core machine), in the order listed; each writes its memory and
+hydra directory under ``--root`` and its log to ``--root/NAME.log``::
+
+    python recipes/her/prior_runs.py --list                    # names, state, overrides
+    python recipes/her/prior_runs.py --jobs 2                   # everything not finished yet
+    python recipes/her/prior_runs.py --only anneal-push-s0,anneal-push-s1
+
+The scripted prior memories are made once by ``recipes.scripted.collect``::
+
+    python -m recipes.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym \\
+        path=bench_results/prior/scripted-push-500.zarr
+    python -m recipes.scripted.collect env=pick_and_place episodes=500 noise=1 seed=0 backend=gym \\
+        path=bench_results/prior/scripted-pnp-500.zarr
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+PUSH_PRIOR = "bench_results/prior/scripted-push-500.zarr"
+PNP_PRIOR = "bench_results/prior/scripted-pnp-500.zarr"
+COMMON = ["collector.total_frames=60000", "logger.eval_iter=2500", "logger.eval_episodes=100",
+          "logger.target_success=0.9", "collector.resume=true"]
+ANNEAL = ["memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=30000"]
+
+
+def _runs() -> dict[str, list[str]]:
+    runs: dict[str, list[str]] = {}
+    for seed in range(3):  # FetchPush: prior memory, annealed prior share, from scratch
+        runs[f"prior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
+        runs[f"scratch-push-s{seed}"] = ["env=push", f"seed={seed}"]
+        runs[f"anneal-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]", *ANNEAL]
+    for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
+        runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
+        runs[f"ownprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PNP_PRIOR}]"]
+        runs[f"scratch-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}"]
+    return runs
+
+
+RUNS = _runs()
+
+
+def command(name: str, root: str) -> list[str]:
+    """The ``train.py`` command line of run ``name``."""
+    train = os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py")
+    memory = os.path.join(root, f"{name}.zarr")
+    return [sys.executable, train, *RUNS[name], *COMMON, f"memory.path={memory}", f"hydra.run.dir={os.path.join(root, name)}"]
+
+
+def state(name: str, root: str) -> str:
+    """``finished``, ``stopped at N frames``, or ``not started``."""
+    summary = os.path.join(root, name, "summary.json")
+    if os.path.exists(summary):
+        with open(summary) as f:
+            s = json.load(f)
+        return f"finished: {s['frames']} frames, final {s['curve'][-1][1]:.2f}, {s['cpu_s']:.0f} CPU-s"
+    agent = os.path.join(root, f"{name}.zarr-agent")
+    if os.path.isdir(agent):
+        from torchrl.checkpoint import Checkpoint
+
+        meta = Checkpoint.manifest(agent).get("metadata") or {}
+        if "frames" in meta:
+            return f"stopped at {meta['frames']} frames (last eval {meta['curve'][-1][1]:.2f})"
+    return "not started"
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--root", default="bench_results/p60", help="memories, hydra run dirs and logs")
+    p.add_argument("--jobs", type=int, default=2, help="runs at a time")
+    p.add_argument("--only", default="", help="comma-separated run names (default: all, in order)")
+    p.add_argument("--nice", type=int, default=5)
+    p.add_argument("--list", action="store_true", help="print each run's state and command, run nothing")
+    args = p.parse_args(argv)
+    names = [n for n in args.only.split(",") if n] or list(RUNS)
+    unknown = [n for n in names if n not in RUNS]
+    if unknown:
+        p.error(f"unknown runs {unknown}; known: {', '.join(RUNS)}")
+    os.makedirs(args.root, exist_ok=True)
+    if args.list:
+        for n in names:
+            print(f"{n:22s} {state(n, args.root)}\n    {' '.join(RUNS[n])}")
+        return
+    queue = [n for n in names if not state(n, args.root).startswith("finished")]
+    running: dict[str, subprocess.Popen] = {}
+    while queue or running:
+        while queue and len(running) < args.jobs:
+            name = queue.pop(0)
+            log = open(os.path.join(args.root, f"{name}.log"), "a")
+            print(f"[{time.strftime('%H:%M:%S')}] start {name} ({state(name, args.root)})", flush=True)
+            running[name] = subprocess.Popen(["nice", "-n", str(args.nice), *command(name, args.root)],
+                                             stdout=log, stderr=subprocess.STDOUT)
+        time.sleep(10)
+        for name, proc in list(running.items()):
+            if proc.poll() is not None:
+                del running[name]
+                print(f"[{time.strftime('%H:%M:%S')}] {name}: exit {proc.returncode}, {state(name, args.root)}",
+                      flush=True)
+
+
+if __name__ == "__main__":
+    main()
