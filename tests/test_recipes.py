@@ -244,3 +244,20 @@ def test_prior_ratio_schedule():
     assert prior_ratio(cfg, 0) == prior_ratio(cfg, 10**6) == 0.5
     cfg.memory.prior_ratio_final, cfg.memory.prior_anneal_frames = 0.1, 1000
     assert [round(prior_ratio(cfg, f), 6) for f in (0, 500, 1000, 5000)] == [0.5, 0.3, 0.1, 0.1]
+
+
+def test_prior_runs_queue_lists_resumable_commands(tmp_path, capsys):
+    sys.path.insert(0, str(RECIPE_DIR))
+    import prior_runs
+
+    assert {"prior-push-s2", "scratch-push-s2", "pushprior-pnp-s0", "ownprior-pnp-s2", "scratch-pnp-s1"} <= set(prior_runs.RUNS)
+    cmd = prior_runs.command("anneal-push-s1", str(tmp_path))
+    assert "collector.resume=true" in cmd and "seed=1" in cmd and "memory.prior_ratio_final=0.1" in cmd
+    assert f"memory.path={tmp_path / 'anneal-push-s1.zarr'}" in cmd
+    (tmp_path / "prior-push-s0").mkdir()
+    (tmp_path / "prior-push-s0" / "summary.json").write_text(json.dumps({"frames": 60000, "curve": [[0, 0.1], [60000, 0.8]], "cpu_s": 10}))
+    prior_runs.main(["--root", str(tmp_path), "--list", "--only", "prior-push-s0,scratch-pnp-s0"])
+    out = capsys.readouterr().out
+    assert "finished: 60000 frames, final 0.80" in out and "scratch-pnp-s0         not started" in out
+    with pytest.raises(SystemExit):
+        prior_runs.main(["--root", str(tmp_path), "--only", "nope"])
