@@ -153,6 +153,13 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/prior_ratio.csv")).read_text()
     ratios = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
     assert ratios == [0.3, 0.1]  # annealed from 0.5: after 25 and 50 of 50 frames
+    # recipes/her/failures.py replays the run's evaluation from its saved agent and sorts the failures
+    sys.path.insert(0, str(RECIPE_DIR))
+    from failures import failures
+
+    f = failures(str(tmp_path / "own.zarr-agent"),
+                 ["env=pick_and_place", "network.hidden_sizes=[16,16]", "logger.eval_episodes=3"])
+    assert f["episodes"] == 3 and f["untouched"] + f["near_miss"] + f["far"] == round(3 * (1 - f["success"]))
     # the prior memory is only read
     assert len(ZarrStorage(prior, read_only=True)) == n_prior
     # a prior written for another observation layout is refused with the reason

@@ -1,0 +1,71 @@
+"""Why a trained Fetch push agent fails: its evaluation episodes, sorted by how they fail.
+
+Loads the agent checkpoint a ``recipes/her/train.py`` run saved next to its
+memory, replays the run's deterministic evaluation (same eval seeds, same
+number of episodes) and sorts the failures by where the object ended::
+
+    python recipes/her/failures.py bench_results/p60/own-push-s0.zarr-agent env=push seed=0
+
+* untouched: the object moved less than 1 cm (the agent did not push);
+* near miss: pushed, ended 5-10 cm from the goal (the success radius is 5 cm);
+* far: pushed, ended more than 10 cm from the goal.
+
+The trailing arguments are hydra overrides of ``config.yaml``: give the ones the
+run was trained with (env, seed, network, ``logger.eval_episodes``).
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+import torch
+from hydra import compose, initialize_config_dir
+from torchrl.checkpoint import Checkpoint
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import utils  # noqa: E402
+
+
+def failures(checkpoint: str, overrides: list[str]) -> dict:
+    """Success rate and failure categories of the deterministic evaluation of ``checkpoint``."""
+    torch.set_num_threads(1)
+    with initialize_config_dir(config_dir=os.path.dirname(os.path.abspath(__file__)), version_base="1.3"):
+        cfg = compose("config", overrides=["logger.eval_episodes=100", *overrides])
+    train_env, eval_env = utils.make_environment(cfg)
+    normalizer = utils.GoalNormalizer()
+    model, _ = utils.make_agent(cfg, train_env, normalizer)
+    loss = utils.make_loss_module(cfg, model)[0]
+    Checkpoint(loss_module=loss, optimizer=utils.make_optimizer(cfg, loss), normalizer=normalizer).load(checkpoint)
+    eval_env.set_seed(cfg.seed + 10_000)  # as utils.evaluate
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        td = eval_env.rollout(cfg.env.max_episode_steps, model[0], break_when_any_done=False)
+    train_env.close()
+    eval_env.close()
+    success = td["next", "is_success"][:, -1].reshape(-1).bool()
+    start, goal = td["achieved_goal"][:, 0], td["desired_goal"][:, 0]
+    end = td["next", "achieved_goal"][:, -1]
+    start_dist, end_dist = (goal - start).norm(dim=-1), (goal - end).norm(dim=-1)
+    moved = (end - start).norm(dim=-1)
+    fail = ~success
+    untouched = fail & (moved < 0.01)
+    near = fail & ~untouched & (end_dist < 0.10)
+    far = fail & ~untouched & ~near
+    return {
+        "episodes": int(success.numel()),
+        "success": success.float().mean().item(),
+        "untouched": int(untouched.sum()),
+        "untouched_start_dist": [round(x, 3) for x in start_dist[untouched].tolist()],
+        "near_miss": int(near.sum()),
+        "near_miss_end_dist": [round(x, 3) for x in end_dist[near].tolist()],
+        "far": int(far.sum()),
+        "start_dist_success_mean": start_dist[success].mean().item() if success.any() else float("nan"),
+        "start_dist_failure_mean": start_dist[fail].mean().item() if fail.any() else float("nan"),
+    }
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 2:
+        sys.exit(__doc__)
+    for key, value in failures(sys.argv[1], sys.argv[2:]).items():
+        print(f"{key}: {value}")
