@@ -101,6 +101,7 @@ def test_non_tensor_entries_are_kept_as_one_value_per_store(tmp_path):
     rb.storage.close()
     again = ZarrStorage(path, read_only=True)
     assert again[torch.arange(3)].task == "push" and again.summary()["constants"] == {"task": "push"}
+    assert again["task"] == "push" and again["obs"].shape == (7, 3)  # a column by key, the constant included
 
     td_rb = ReplayBuffer(storage=ZarrStorage(tmp_path / "d.zarr", 100), batch_size=3)
     td_rb.extend(TensorDict({"x": torch.zeros(4), "tag": NonTensorData("a", batch_size=[4])}, [4]))

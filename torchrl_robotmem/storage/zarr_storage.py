@@ -1080,6 +1080,8 @@ class ZarrStorage(LazyTensorStorage):
             raise RuntimeError("Cannot get elements out of a non-initialized storage.")
         if isinstance(index, str) or (isinstance(index, tuple) and index and all(isinstance(i, str) for i in index)):
             rows = self._views if self._is_full else self._views[: self._len_along_dim0]
+            if self._constants:  # a non-tensor entry is a column too
+                rows = with_constants(rows, self._constants)
             return rows[index]  # a column, as LazyTensorStorage gives it
         if isinstance(index, list):
             index = torch.as_tensor(index)
