@@ -135,14 +135,14 @@ class DataKind:
 CONSTANT_TYPES = (str, int, float, bool, type(None))
 
 
-def split_constants(td: TensorDictBase, skip: tuple = ("env",)) -> dict[str, Any]:
+def split_constants(td: TensorDictBase) -> dict[str, Any]:
     """Pops the non-tensor leaves of ``td`` (in place) and returns ``{path: value}``.
 
     A store keeps a non-tensor entry (a tensorclass's ``str`` field, a
     ``NonTensorData`` in a TensorDict) as *one value shared by every row*, in
     its metadata as JSON, as ``LazyMemmapStorage`` keeps it in its metadata.
-    Nothing is pickled. ``skip`` names leaves with their own meaning (a
-    non-tensor ``"env"`` names the environment of each row).
+    Nothing is pickled. Callers drop the tag entries first (a non-tensor
+    ``"env"`` names the environment of each row, not a constant).
 
     Raises, naming the key, on a value that is not a JSON scalar
     (``str``, ``int``, ``float``, ``bool``, ``None``) or on rows that carry
@@ -156,7 +156,7 @@ def split_constants(td: TensorDictBase, skip: tuple = ("env",)) -> dict[str, Any
     """
     found = {}
     for key, value in list(td.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor)):
-        if isinstance(value, torch.Tensor) or key in skip:
+        if isinstance(value, torch.Tensor):
             continue
         if isinstance(value, NonTensorStack):
             values = _flat(value.tolist())
