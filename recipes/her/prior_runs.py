@@ -15,6 +15,8 @@ The scripted prior memories are made once by ``recipes.scripted.collect``::
 
     python -m recipes.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym \\
         path=bench_results/prior/scripted-push-500.zarr
+    python -m recipes.scripted.collect env=push episodes=500 noise=0 seed=0 backend=gym \\
+        path=bench_results/prior/scripted-push-500-n0.zarr
     python -m recipes.scripted.collect env=pick_and_place episodes=500 noise=1 seed=0 backend=gym \\
         path=bench_results/prior/scripted-pnp-500.zarr
 """
@@ -28,6 +30,7 @@ import sys
 import time
 
 PUSH_PRIOR = "bench_results/prior/scripted-push-500.zarr"
+PUSH_PRIOR_CLEAN = "bench_results/prior/scripted-push-500-n0.zarr"  # default parameters: 96.6% success
 PNP_PRIOR = "bench_results/prior/scripted-pnp-500.zarr"
 COMMON = ["collector.total_frames=60000", "logger.eval_iter=2500", "logger.eval_episodes=100",
           "logger.target_success=0.9", "collector.resume=true"]
@@ -40,6 +43,7 @@ def _runs() -> dict[str, list[str]]:
         runs[f"prior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
         runs[f"scratch-push-s{seed}"] = ["env=push", f"seed={seed}"]
         runs[f"anneal-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]", *ANNEAL]
+        runs[f"cleanprior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
         runs[f"ownprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PNP_PRIOR}]"]
