@@ -46,8 +46,10 @@ def load_run(run_dir: str) -> dict:
             "running": True}
 
 
-def first_reach(curve: list, target: float) -> int | None:
-    """Frames of the first evaluation at or above ``target``."""
+def first_reach(curve: list, target: float | None) -> int | None:
+    """Frames of the first evaluation at or above ``target`` (``None``: never, or no target)."""
+    if target is None:
+        return None
     return next((int(x) for x, y in curve if y >= target), None)
 
 

@@ -21,7 +21,6 @@ import sys
 import torch
 from hydra import compose, initialize_config_dir
 from torchrl.checkpoint import Checkpoint
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import utils  # noqa: E402
@@ -37,9 +36,7 @@ def failures(checkpoint: str, overrides: list[str]) -> dict:
     model, _ = utils.make_agent(cfg, train_env, normalizer)
     loss = utils.make_loss_module(cfg, model)[0]
     Checkpoint(loss_module=loss, optimizer=utils.make_optimizer(cfg, loss), normalizer=normalizer).load(checkpoint)
-    eval_env.set_seed(cfg.seed + 10_000)  # as utils.evaluate
-    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        td = eval_env.rollout(cfg.env.max_episode_steps, model[0], break_when_any_done=False)
+    td = utils.eval_rollout(cfg, eval_env, model[0])  # the run's own evaluation episodes
     train_env.close()
     eval_env.close()
     success = td["next", "is_success"][:, -1].reshape(-1).bool()

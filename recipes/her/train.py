@@ -34,6 +34,7 @@ import hydra
 import numpy as np
 import torch
 import tqdm
+from compare import first_reach
 from hydra.utils import to_absolute_path
 from prior import TRANSITION_KEYS, PriorMix, make_prior_buffers
 from tensordict import TensorDict
@@ -46,7 +47,6 @@ from utils import (
     append_history,
     current_goals,
     evaluate,
-    first_reach,
     loss_keys,
     make_agent,
     make_collector,

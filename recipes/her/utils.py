@@ -185,13 +185,6 @@ def prior_ratio(cfg: DictConfig, frames: int) -> float:
     return float(start + t * (final - start))
 
 
-def first_reach(curve, target: float | None) -> int | None:
-    """Frames of the first evaluation of ``curve`` at or above ``target`` (``None``: never, or no target)."""
-    if target is None:
-        return None
-    return next((int(x) for x, y in curve if y >= target), None)
-
-
 def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dict | None:
     """Where a stopped run stands, for ``collector.resume=true`` (``None``: start the run fresh).
 
@@ -234,17 +227,19 @@ def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dic
 
 
 @torch.no_grad()
-def evaluate(cfg: DictConfig, eval_env, actor) -> dict[str, float]:
-    """Deterministic episodes on fixed goals (the eval env is reseeded each time).
-
-    Success is ``is_success`` at an episode's last step.
-    """
+def eval_rollout(cfg: DictConfig, eval_env, actor) -> TensorDictBase:
+    """The deterministic evaluation episodes, ``[episodes, T]``, on fixed goals (the eval env is reseeded)."""
     eval_env.set_seed(cfg.seed + 10_000)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = eval_env.rollout(
             cfg.env.max_episode_steps, actor, break_when_any_done=False
         )
-    rollout = rollout.reshape(-1, rollout.shape[-1])  # [episodes, T]
+    return rollout.reshape(-1, rollout.shape[-1])
+
+
+def evaluate(cfg: DictConfig, eval_env, actor) -> dict[str, float]:
+    """Success and return of :func:`eval_rollout`; success is ``is_success`` at an episode's last step."""
+    rollout = eval_rollout(cfg, eval_env, actor)
     return {
         # float64: 19/20 in float32 is 0.9499999, under a 0.95 target
         "eval/success_rate": rollout["next", "is_success"][:, -1].double().mean().item(),
