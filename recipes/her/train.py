@@ -165,8 +165,14 @@ def main(cfg: DictConfig):  # noqa: F821
         np.random.seed(cfg.seed + collected_frames)
 
     def save(finished: bool) -> None:
-        """The agent, and the run's progress in the checkpoint's metadata (one atomic write)."""
+        """The agent, and the run's progress in the checkpoint's metadata (one atomic write).
+
+        The memory is made durable first, so a kill after the save never leaves
+        a checkpoint that counts rows the store lost.
+        """
         with cpu.paused():
+            if hasattr(replay_buffer.storage, "flush"):
+                replay_buffer.storage.flush()
             checkpoint.save(checkpoint_path, metadata={
                 "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "updates": num_updates,
                 "memory_rows_before": remembered, "memory_rows": len(replay_buffer),
@@ -264,11 +270,9 @@ def main(cfg: DictConfig):  # noqa: F821
     if curve[-1][0] != collected_frames:
         log_eval(collected_frames)
 
-    # Save the agent next to its memory; persist the memory
+    # Persist the memory, then save the agent next to it
     save(finished=True)
     storage = replay_buffer.storage
-    if hasattr(storage, "flush"):
-        storage.flush()
     summary = {
         "env": cfg.env.name,
         "algo": algo,
