@@ -85,7 +85,7 @@ def plot(groups: dict[str, list[dict]], path: str, title: str, target: float) ->
     ax.axhline(target, color="grey", lw=0.8, ls=":")
     ax.set(xlabel="new env frames", ylabel="eval success rate", ylim=(-0.02, 1.02), title=title)
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=8, framealpha=0.9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
