@@ -102,8 +102,7 @@ def main(cfg: DictConfig):  # noqa: F821
     if priors:
         mix = PriorMix(replay_buffer, priors, cfg.memory.prior_ratio, cfg.env.name, TRANSITION_KEYS,
                        example=train_env.fake_tensordict())
-        mix.ratio = prior_ratio(cfg, cfg.memory.prior_anneal_frames or 0)  # both ends of a schedule in [0, 1]
-        mix.ratio = prior_ratio(cfg, 0)
+        mix.ratio = prior_ratio(cfg, 0)  # raises on a ratio or schedule end outside [0, 1]
 
     # Create agent, loss, optimiser
     normalizer = GoalNormalizer()

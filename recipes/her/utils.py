@@ -179,6 +179,8 @@ def prior_ratio(cfg: DictConfig, frames: int) -> float:
     """
     start, final = cfg.memory.prior_ratio, cfg.memory.get("prior_ratio_final")
     horizon = cfg.memory.get("prior_anneal_frames") or 0
+    if final is not None and not 0.0 <= final <= 1.0:
+        raise ValueError(f"memory.prior_ratio_final must be in [0, 1], got {final}.")
     if final is None or horizon <= 0:
         return float(start)
     t = min(1.0, frames / horizon)
