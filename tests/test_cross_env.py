@@ -68,7 +68,7 @@ def test_cross_env_command_end_to_end(tmp_path):
 
     shutil.rmtree(tmp_path / "mem" / "seed0.zarr")
     again = run.main([
-        f"out={out}", f"workdir={tmp_path / 'mem'}", "learned_only=true",
+        f"out={out}", f"workdir={tmp_path / 'mem'}", "learned_only=true", "learned_jobs=2",  # both arms at once
         "learned_frames=200", "learned_seeds=1", "learned_eval_episodes=1", "learned_eval_iter=100",
         "learned_overrides=collector.init_random_frames=50;memory.pretrain_updates=5;optim.batch_size=16;"
         "network.hidden_sizes=[16,16];replay_buffer.size=1000;logger.backend=",

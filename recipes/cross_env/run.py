@@ -7,7 +7,7 @@ One command builds the memories, runs every arm on the same FetchSlide episodes
     python -m recipes.cross_env.run                       # the pre-registered experiment (docs/cross_env.md)
     python -m recipes.cross_env.run seeds=1 episodes=2 push_episodes=2 slide_episodes=2 \
         tune_episodes=2 speeds=0.8 out=/tmp/cross_env     # smoke run
-    python -m recipes.cross_env.run learned_only=true learned_frames=60000   # the learned arm alone, resumable
+    python -m recipes.cross_env.run learned_only=true learned_frames=60000 learned_jobs=2  # the learned arm alone, resumable
 
 Per seed (replicate) ``s`` one memory (a :class:`~torchrl_robotmem.ZarrStorage`)
 holds ``push_episodes`` noisy scripted FetchPush episodes and ``slide_episodes``
@@ -26,6 +26,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -165,7 +166,7 @@ def make_arms(storage, baseline: StrikeParams, k: int) -> dict[str, ParamFn]:
 
 def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, out: str,
                 eval_episodes: int = 100, eval_iter: int = 2500, overrides: list[str] | None = None,
-                log=print) -> dict:
+                jobs: int = 1, log=print) -> dict:
     """FetchSlide SAC+HER (``recipes/her``) with ``memory`` as a read-only prior vs from scratch.
 
     Both arms run the same recipe, seeds and frame budget; the prior arm adds
@@ -183,37 +184,47 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, ou
         workdir / out: where the runs' memories / logs go.
         eval_episodes / eval_iter: deterministic evaluation episodes, every this many frames.
         overrides: extra hydra overrides for both arms (e.g. ``["collector.cpu_budget_s=3000"]``).
+        jobs: runs at a time (each is one single-threaded process: ``2`` on a 2-core machine);
+            seed ``i``'s prior and scratch runs go first, so a cut-off arm stays paired.
     """
     if frames <= 0 or memory is None:
         return {"status": "not run",
                 "reason": "learned_frames=0; set learned_frames=N (about 75 CPU-ms a frame here) to run it"}
     train = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "her", "train.py")
+    if jobs < 1:
+        raise ValueError(f"learned_jobs must be >= 1, got {jobs}")
+
+    def run_one(seed: int, arm: str) -> dict:
+        name = f"{arm}-s{seed}"
+        run_dir = os.path.abspath(os.path.join(out, "learned", name))
+        mem = os.path.abspath(os.path.join(workdir, "learned", f"{name}.zarr"))
+        if not os.path.isdir(f"{mem}-agent"):  # nothing to resume: start this run afresh
+            for p in (mem, f"{mem}-runs.jsonl"):
+                if os.path.isdir(p):
+                    shutil.rmtree(p)
+                elif os.path.exists(p):
+                    os.remove(p)
+        # collector.resume: a run stopped earlier (killed, out of time) continues, a finished one is kept
+        cmd = [sys.executable, train, "env=slide", f"seed={seed}", f"memory.path={mem}",
+               f"collector.total_frames={frames}", f"logger.eval_iter={eval_iter}",
+               f"logger.eval_episodes={eval_episodes}", "logger.plot=false", f"hydra.run.dir={run_dir}",
+               "collector.resume=true", *(overrides or [])]
+        if arm == "prior":
+            cmd.append(f"memory.prior=[{os.path.abspath(memory)}]")
+        log(f"learned arm: {name}: {' '.join(cmd[1:])}")
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        with open(os.path.join(run_dir, "summary.json")) as f:
+            summary = json.load(f)
+        log(f"learned arm: {name}: success {summary['curve'][-1][1]:.2f} after {summary['frames']} "
+            f"frames ({summary['cpu_s']:.0f} CPU-s)")
+        return summary
+
+    tasks = [(seed, arm) for seed in range(seeds) for arm in ("prior", "scratch")]
+    with ThreadPoolExecutor(max_workers=jobs) as pool:  # threads only wait on the subprocesses
+        summaries = list(pool.map(lambda t: run_one(*t), tasks))
     runs: dict[str, list[dict]] = {"prior": [], "scratch": []}
-    for seed in range(seeds):
-        for arm in ("prior", "scratch"):
-            name = f"{arm}-s{seed}"
-            run_dir = os.path.abspath(os.path.join(out, "learned", name))
-            mem = os.path.abspath(os.path.join(workdir, "learned", f"{name}.zarr"))
-            if not os.path.isdir(f"{mem}-agent"):  # nothing to resume: start this run afresh
-                for p in (mem, f"{mem}-runs.jsonl"):
-                    if os.path.isdir(p):
-                        shutil.rmtree(p)
-                    elif os.path.exists(p):
-                        os.remove(p)
-            # collector.resume: a run stopped earlier (killed, out of time) continues, a finished one is kept
-            cmd = [sys.executable, train, "env=slide", f"seed={seed}", f"memory.path={mem}",
-                   f"collector.total_frames={frames}", f"logger.eval_iter={eval_iter}",
-                   f"logger.eval_episodes={eval_episodes}", "logger.plot=false", f"hydra.run.dir={run_dir}",
-                   "collector.resume=true", *(overrides or [])]
-            if arm == "prior":
-                cmd.append(f"memory.prior=[{os.path.abspath(memory)}]")
-            log(f"learned arm: {name}: {' '.join(cmd[1:])}")
-            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-            with open(os.path.join(run_dir, "summary.json")) as f:
-                summary = json.load(f)
-            runs[arm].append(summary)
-            log(f"learned arm: {name}: success {summary['curve'][-1][1]:.2f} after {summary['frames']} "
-                f"frames ({summary['cpu_s']:.0f} CPU-s)")
+    for (_, arm), summary in zip(tasks, summaries):
+        runs[arm].append(summary)
     final = {arm: [r["curve"][-1][1] for r in rs] for arm, rs in runs.items()}
     return {"status": "run", "reason": f"{seeds} seeds x {frames} frames per arm, {eval_episodes}-episode evals",
             "memory": os.path.abspath(memory), "runs": runs, "final": final,
@@ -367,6 +378,7 @@ def _parse(argv):
     p.add_argument("--learned_frames", type=int, default=0,
                    help="FetchSlide SAC+HER frames per run of the learned arm (0: skip; hours on a CPU)")
     p.add_argument("--learned_seeds", type=int, default=3)
+    p.add_argument("--learned_jobs", type=int, default=1, help="learned-arm runs at a time (2 on a 2-core machine)")
     p.add_argument("--learned_eval_episodes", type=int, default=100)
     p.add_argument("--learned_eval_iter", type=int, default=2500)
     p.add_argument("--learned_overrides", default="", help="extra hydra overrides for both arms, separated by ';'")
@@ -422,7 +434,8 @@ def main(argv: list[str] | None = None) -> dict:
             os.path.join(args.workdir, "seed0.zarr") if args.seeds else None,
             frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir, out=args.out,
             eval_episodes=args.learned_eval_episodes, eval_iter=args.learned_eval_iter,
-            overrides=[o for o in str(args.learned_overrides).split(";") if o], log=log),
+            overrides=[o for o in str(args.learned_overrides).split(";") if o], jobs=args.learned_jobs,
+            log=log),
         "seconds": round(time.time() - t0, 1),
     }
     return write_results(res, args.out)
@@ -465,7 +478,7 @@ def learned_only(args: argparse.Namespace, log) -> dict:
     res["learned"] = learned_arm(
         memory, frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir, out=args.out,
         eval_episodes=args.learned_eval_episodes, eval_iter=args.learned_eval_iter,
-        overrides=[o for o in str(args.learned_overrides).split(";") if o], log=log)
+        overrides=[o for o in str(args.learned_overrides).split(";") if o], jobs=args.learned_jobs, log=log)
     res["config"].update({k: v for k, v in vars(args).items() if k.startswith("learned")})
     res["learned_seconds"] = round(time.time() - t0, 1)
     return write_results(res, args.out)
