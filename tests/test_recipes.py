@@ -148,8 +148,12 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     assert n_prior == 100
     s = run_recipe(tmp_path, "env=pick_and_place", f"memory.path={tmp_path / 'own.zarr'}",
                    f"memory.prior=[{prior}]", "memory.prior_ratio=0.5",
-                   "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50")
+                   "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50", "memory.prior_bc=0.4")
     assert s["memory_rows_after"] == 50 and s["updates"] > 0
+    for name in ("loss_bc", "bc_kept"):  # memory.prior_bc: the Q-filtered cloning term is trained and logged
+        logged = next((tmp_path / "out" / "her_logging").glob(f"*/scalars/train/{name}.csv")).read_text()
+        values = [float(line.split(",")[1]) for line in logged.splitlines() if line[:1].isdigit()]
+        assert len(values) == 2 and all(v >= 0 for v in values)
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/prior_ratio.csv")).read_text()
     ratios = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
     assert ratios == [0.3, 0.1]  # annealed from 0.5: after 25 and 50 of 50 frames
@@ -171,6 +175,13 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "observation layout" in proc.stderr
+    # cloning prior actions without a prior memory is refused
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "env=push", f"memory.path={tmp_path / 'q.zarr'}",
+         "memory.prior_bc=0.4", f"hydra.run.dir={tmp_path / 'bad2'}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode != 0 and "set memory.prior=" in proc.stderr
     # recipes/her/compare.py: the two finished runs in one plot and one table
     sys.path.insert(0, str(RECIPE_DIR))
     import compare
@@ -268,3 +279,60 @@ def test_prior_runs_queue_lists_resumable_commands(tmp_path, capsys):
     assert "finished: 60000 frames, final 0.80" in out and "scratch-pnp-s0         not started" in out
     with pytest.raises(SystemExit):
         prior_runs.main(["--root", str(tmp_path), "--only", "nope"])
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
+def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_path, algo):
+    """memory.prior_bc (bc.py): the Q-filtered behaviour-cloning term, on a real scripted memory and real losses."""
+    from hydra import compose, initialize_config_dir
+
+    from recipes.scripted.collect import main as collect
+    from torchrl_robotmem import ZarrStorage
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    import utils
+    from bc import PRIOR_KEY, PriorBC
+
+    torch.manual_seed(0)
+    prior = tmp_path / "scripted-push.zarr"
+    collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0"])
+    with initialize_config_dir(config_dir=str(RECIPE_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["env=push", f"algo={algo}", "network.hidden_sizes=[32,32]"])
+    train_env, eval_env = utils.make_environment(cfg)
+    model, _ = utils.make_agent(cfg, train_env, utils.GoalNormalizer())
+    loss = utils.make_loss_module(cfg, model)[0]
+    train_env.close()
+    eval_env.close()
+    batch = ZarrStorage(prior, read_only=True)[:64]
+    batch.set(PRIOR_KEY, torch.ones(64, dtype=torch.bool))
+    demo = batch["action"]
+
+    with pytest.raises(ValueError, match="prior_bc must be >= 0"):
+        PriorBC(loss, weight=-1.0)
+    # no prior rows in the batch: nothing to imitate
+    own = batch.clone()
+    own.set(PRIOR_KEY, torch.zeros(64, dtype=torch.bool))
+    assert PriorBC(loss, weight=1.0)(own)["loss_bc"].item() == 0.0
+    # the Q filter keeps a subset of the rows, and only those count
+    full, filtered = PriorBC(loss, weight=1.0, q_filter=False)(batch), PriorBC(loss, weight=1.0)(batch)
+    assert full["bc_kept"].item() == 1.0 and 0.0 <= filtered["bc_kept"].item() <= 1.0
+    assert filtered["loss_bc"].item() <= full["loss_bc"].item() + 1e-6
+    # minimising the unfiltered term moves the deterministic actor onto the stored actions
+    actor = loss.actor_network
+    params = list(loss.actor_network_params.flatten_keys().values())
+    opt = torch.optim.Adam(params, lr=3e-3)
+    bc = PriorBC(loss, weight=1.0, q_filter=False)
+
+    def actor_error() -> float:
+        from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC), \
+                loss.actor_network_params.to_module(actor):
+            return (actor(batch.select(*actor.in_keys).clone())["action"] - demo).pow(2).mean().item()
+
+    before = actor_error()
+    for _ in range(300):
+        opt.zero_grad()
+        bc(batch)["loss_bc"].backward()
+        opt.step()
+    assert actor_error() < 0.5 * before

@@ -18,6 +18,7 @@ HER buffer and concatenated keeps it.
 from __future__ import annotations
 
 import torch
+from bc import PRIOR_KEY
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
@@ -100,17 +101,23 @@ class PriorMix:
         return sum(len(p) for p in self.priors)
 
     def sample(self, batch_size: int, query=None) -> TensorDictBase:
-        """A batch: ``batch_size * ratio`` rows from the priors, the rest from the run's own buffer."""
+        """A batch: ``batch_size * ratio`` rows from the priors, the rest from the run's own buffer.
+
+        ``batch["from_prior"]`` marks the prior rows (for ``memory.prior_bc``).
+        """
         n_prior = batch_size if not len(self.own) else int(round(self.ratio * batch_size))
         parts = []
         if batch_size - n_prior:
-            parts.append(self._own(batch_size - n_prior, query).select(*self.keys, strict=False))
+            batch = self._own(batch_size - n_prior, query).select(*self.keys, strict=False)
+            batch.set(PRIOR_KEY, torch.zeros(batch.shape, dtype=torch.bool))
+            parts.append(batch)
         if n_prior:
             counts = torch.distributions.Multinomial(n_prior, self._weights).sample().long().tolist()
             for buffer, k in zip(self.priors, counts):
                 if k:
                     batch = buffer.sample(k).select(*self.keys, strict=False)
                     batch.set(("next", "reward"), self.reward_fn(batch))  # the current task's reward
+                    batch.set(PRIOR_KEY, torch.ones(batch.shape, dtype=torch.bool))
                     parts.append(batch)
         return torch.cat(parts, 0)
 

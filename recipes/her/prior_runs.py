@@ -35,6 +35,7 @@ PNP_PRIOR = "bench_results/prior/scripted-pnp-500.zarr"
 COMMON = ["collector.total_frames=60000", "logger.eval_iter=2500", "logger.eval_episodes=100",
           "logger.target_success=0.9", "collector.resume=true"]
 ANNEAL = ["memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=30000"]
+BC = ["memory.prior_bc=0.4"]  # Q-filtered cloning of the prior's actions (bc.py), TD3+BC's weight
 
 
 def _runs() -> dict[str, list[str]]:
@@ -44,6 +45,7 @@ def _runs() -> dict[str, list[str]]:
         runs[f"scratch-push-s{seed}"] = ["env=push", f"seed={seed}"]
         runs[f"anneal-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]", *ANNEAL]
         runs[f"cleanprior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
+        runs[f"bc-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *BC]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
         runs[f"ownprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PNP_PRIOR}]"]

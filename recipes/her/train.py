@@ -12,7 +12,9 @@ update, log, evaluate), with three changes:
   the goals being chased now, and :class:`~torchrl_robotmem.RecallTransform`
   shows actor and critic the remembered goals nearest to their goal;
 * ``memory.prior=[path, ...]``: read-only memories of other runs, tasks or
-  scripted controllers, sampled beside the run's own buffer (``prior.py``).
+  scripted controllers, sampled beside the run's own buffer (``prior.py``);
+  ``memory.prior_bc=w`` also clones their actions where the critics prefer
+  them (``bc.py``).
 
 The agent (networks, optimiser, normaliser) is saved next to the memory at every
 evaluation, with the run's progress (frames, curve, CPU time) in the
@@ -34,6 +36,7 @@ import hydra
 import numpy as np
 import torch
 import tqdm
+from bc import PriorBC
 from compare import first_reach
 from hydra.utils import to_absolute_path
 from prior import TRANSITION_KEYS, PriorMix, make_prior_buffers
@@ -132,22 +135,34 @@ def main(cfg: DictConfig):  # noqa: F821
             normalizer.update(buffer[:].select(*mix.keys, strict=False))
     keys = loss_keys(cfg)
     num_updates = progress["updates"] if progress else 0
+    bc = None
+    if cfg.memory.get("prior_bc", 0.0):
+        if mix is None:
+            raise ValueError("memory.prior_bc clones the actions of memory.prior rows: set memory.prior=[path, ...] too.")
+        bc = PriorBC(loss_module, cfg.memory.prior_bc, q_filter=cfg.memory.get("prior_bc_q_filter", True))
 
     def update(batch):
         nonlocal num_updates
         if recall is not None:
             refresh_recall(batch, recall)
-        loss_td = loss_module(batch)
         used = keys
         if algo == "TD3" and num_updates % cfg.algo.policy_update_delay:
             used = ("loss_qvalue",)  # delayed actor and target updates
-        sum(loss_td[k] for k in used).backward()
+        extra = bc(batch) if bc is not None and "loss_actor" in used else {}
+        loss_td = loss_module(batch)
+        total = sum(loss_td[k] for k in used)
+        if extra:
+            total = total + extra["loss_bc"]
+        total.backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         if used is keys:
             target_net_updater.step()
         num_updates += 1
-        return loss_td.select(*keys).detach()
+        out = loss_td.select(*keys).detach()
+        if bc is not None:  # the same keys every update (zeros on TD3's critic-only steps)
+            out.update({k: extra.get(k, torch.zeros(())).detach() for k in ("loss_bc", "bc_kept")})
+        return out
 
     # frames of this run so far: every row it added to its memory (a resumed run
     # counts the rows collected after its last checkpoint too)
