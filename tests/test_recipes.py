@@ -187,11 +187,16 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     import compare
 
     png = tmp_path / "cmp.png"
-    md = compare.main(["--out", str(png), "--target", "0.5", f"prior={tmp_path / 'out'}", f"reach={tmp_path / 'reach'}"])
+    md = compare.main(["--out", str(png), "--target", "0.5", "--archive", str(tmp_path / "runs"),
+                       f"prior={tmp_path / 'out'}", f"reach={tmp_path / 'reach'}"])
     rows = md.splitlines()
     assert rows[0] == "| run | 0k | 0.05k | first >= 0.5 | CPU-s |"
     assert rows[2].startswith("| prior, out | ") and rows[3].startswith("| reach, reach | ") and len(rows) == 4
     assert f"| {s['cpu_s']:.0f} |" in rows[2] and png.stat().st_size > 0
+    # --archive keeps each run's curve as a small json that stands in for the (big, local) run directory
+    again = compare.main(["--out", str(png), "--target", "0.5", f"prior={tmp_path / 'runs' / 'out.json'}",
+                          f"reach={tmp_path / 'runs' / 'reach.json'}"])
+    assert again == md
     with pytest.raises(FileNotFoundError, match="not a recipes/her run"):
         compare.load_run(str(tmp_path / "bad" / "nothing"))
 

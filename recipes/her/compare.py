@@ -13,6 +13,14 @@ reached ``--target``::
 A run still in progress has no ``summary.json`` yet: its curve is read from the
 CSV logger's ``eval/success_rate.csv`` files instead (all of them: a run resumed
 with ``collector.resume=true`` logs to one more; its CPU time shows as "partial").
+
+Run directories (memories, logs) are big and machine-local; their curves are
+small. ``--archive DIR`` writes each run's curve, frames and CPU time to
+``DIR/<run>.json``, and such a file can stand in for the run directory later
+(``docs/runs/`` keeps those of docs/results.md)::
+
+    python recipes/her/compare.py --out /tmp/p.png --archive docs/runs "bc=bench_results/p60/bc-push-s0"
+    python recipes/her/compare.py --out docs/img/x.png "bc=docs/runs/bc-push-s0.json"
 """
 from __future__ import annotations
 
@@ -24,7 +32,11 @@ import os
 
 
 def load_run(run_dir: str) -> dict:
-    """``summary.json`` of a finished run, or the partial curve of a running one."""
+    """``summary.json`` of a finished run, the partial curve of a running one, or an archived ``.json``."""
+    if run_dir.endswith(".json") and os.path.isfile(run_dir):
+        with open(run_dir) as f:
+            run = json.load(f)
+        return {**run, "dir": run_dir[: -len(".json")], "running": not run.get("finished", True)}
     path = os.path.join(run_dir, "summary.json")
     if os.path.exists(path):
         with open(path) as f:
@@ -68,6 +80,21 @@ def table(groups: dict[str, list[dict]], target: float) -> str:
     return "\n".join(lines)
 
 
+def archive(groups: dict[str, list[dict]], directory: str) -> list[str]:
+    """Each run's curve, frames and CPU time as ``directory/<run>.json`` (what ``load_run`` reads back)."""
+    os.makedirs(directory, exist_ok=True)
+    paths = []
+    for runs in groups.values():
+        for r in runs:
+            path = os.path.join(directory, os.path.basename(r["dir"].rstrip("/")) + ".json")
+            with open(path, "w") as f:
+                json.dump({"curve": [[int(x), float(y)] for x, y in r["curve"]], "frames": int(r["frames"]),
+                           "cpu_s": r["cpu_s"], "finished": not r["running"]}, f)
+                f.write("\n")
+            paths.append(path)
+    return paths
+
+
 def plot(groups: dict[str, list[dict]], path: str, title: str, target: float) -> None:
     import matplotlib
 
@@ -97,6 +124,7 @@ def main(argv: list[str] | None = None) -> str:
     p.add_argument("--out", required=True, help="PNG path")
     p.add_argument("--title", default="")
     p.add_argument("--target", type=float, default=0.9)
+    p.add_argument("--archive", default=None, help="also write each run's curve to ARCHIVE/<run>.json")
     args = p.parse_args(argv)
     groups = {}
     for g in args.groups:
@@ -105,6 +133,8 @@ def main(argv: list[str] | None = None) -> str:
             p.error(f"{g!r}: expected label=run_dir[,run_dir...]")
         groups[label] = [load_run(d) for d in dirs.split(",") if d]
     plot(groups, args.out, args.title, args.target)
+    if args.archive:
+        archive(groups, args.archive)
     md = table(groups, args.target)
     print(md)
     return md
