@@ -36,7 +36,7 @@ def load_run(run_dir: str) -> dict:
     if run_dir.endswith(".json") and os.path.isfile(run_dir):
         with open(run_dir) as f:
             run = json.load(f)
-        return {**run, "dir": run_dir[: -len(".json")], "running": not run.get("finished", True)}
+        return {**run, "dir": run_dir[: -len(".json")], "running": not run.get("finished", True), "archived": True}
     path = os.path.join(run_dir, "summary.json")
     if os.path.exists(path):
         with open(path) as f:
@@ -86,6 +86,8 @@ def archive(groups: dict[str, list[dict]], directory: str) -> list[str]:
     paths = []
     for runs in groups.values():
         for r in runs:
+            if r.get("archived"):  # read from an archive already
+                continue
             path = os.path.join(directory, os.path.basename(r["dir"].rstrip("/")) + ".json")
             with open(path, "w") as f:
                 json.dump({"curve": [[int(x), float(y)] for x, y in r["curve"]], "frames": int(r["frames"]),
