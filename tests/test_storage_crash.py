@@ -349,7 +349,9 @@ from zarr.storage import LocalStore
 from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem.storage import ZarrStorage
 path = sys.argv[1]
-st = ZarrStorage(path, 128, chunk_rows=64, commit_interval=60)
+# in-process commits: LocalStore.set is patched in this process only, and a commit worker that
+# finished starting before the wrap would write the chunks where the patch cannot see them
+st = ZarrStorage(path, 128, chunk_rows=64, commit_interval=60, commit_process=False)
 rb = TensorDictReplayBuffer(storage=st, batch_size=4)
 rb.extend(make_rows(torch.arange(128))); st.flush()
 orig_set = LocalStore.set
