@@ -1,11 +1,13 @@
-"""The prior-memory experiments of docs/results.md (sections 8-9), as one resumable queue.
+"""The prior-memory experiments of docs/results.md (sections 8-10), as one resumable queue.
 
 Every run is ``recipes/her/train.py`` with 60k new env frames, 100 deterministic
 evaluation episodes every 2500 frames and ``collector.resume=true``: launching
 this script again (next session, after a kill) continues each stopped run from
 its last evaluation and skips finished ones. ``--jobs`` runs go at a time
 (two on a 2-core machine), in the order listed; each writes its memory and
-hydra directory under ``--root`` and its log to ``--root/NAME.log``::
+hydra directory under ``--root`` and its log to ``--root/NAME.log``. Run
+directories are machine-local: keep a finished run's curve with
+``compare.py --archive docs/runs`` (docs/results.md section 10)::
 
     python recipes/her/prior_runs.py --list                    # names, state, overrides
     python recipes/her/prior_runs.py --jobs 2                   # everything not finished yet
