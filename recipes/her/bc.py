@@ -50,6 +50,7 @@ class PriorBC:
         if weight < 0:
             raise ValueError(f"memory.prior_bc must be >= 0, got {weight}.")
         self.loss_module, self.weight, self.q_filter = loss_module, float(weight), bool(q_filter)
+        self._action_key = getattr(loss_module.tensor_keys, "action", "action")  # DDPG's keys name none
         if hasattr(loss_module, "qvalue_network"):  # SAC, TD3: stacked twin critics
             self._critic, self._critic_params = loss_module.qvalue_network, "qvalue_network_params"
         else:  # DDPG: one critic
@@ -64,7 +65,7 @@ class PriorBC:
         with torch.no_grad():
             for p in (params.unbind(0) if stacked else [params]):
                 q_td = td.select(*self._critic.in_keys, strict=False)
-                q_td.set(getattr(self.loss_module.tensor_keys, "action", "action"), action)
+                q_td.set(self._action_key, action)
                 with p.to_module(self._critic):
                     qs.append(self._critic(q_td).get(key).squeeze(-1))
         return torch.stack(qs).min(0)[0]
@@ -76,11 +77,10 @@ class PriorBC:
             return {"loss_bc": zero, "bc_kept": zero}
         prior = batch[mask]
         actor = self.loss_module.actor_network
-        action_key = getattr(self.loss_module.tensor_keys, "action", "action")
         with set_exploration_type(ExplorationType.DETERMINISTIC), \
                 self.loss_module.actor_network_params.to_module(actor):
-            pi = actor(prior.select(*actor.in_keys, strict=False)).get(action_key)
-        demo = prior.get(action_key)
+            pi = actor(prior.select(*actor.in_keys, strict=False)).get(self._action_key)
+        demo = prior.get(self._action_key)
         q_pi = self._q(prior, pi.detach())
         keep = (self._q(prior, demo) > q_pi).float() if self.q_filter else torch.ones_like(q_pi)
         mse = (pi - demo).pow(2).mean(-1)
