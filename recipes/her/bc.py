@@ -56,19 +56,19 @@ class PriorBC:
         else:  # DDPG: one critic
             self._critic, self._critic_params = loss_module.value_network, "value_network_params"
 
-    def _q(self, td: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
-        """``min_i Q_i(s, action)`` with the live critic parameters, no gradient."""
+    def _q(self, td: TensorDictBase, *actions: torch.Tensor) -> list[torch.Tensor]:
+        """``min_i Q_i(s, a)`` for each of ``actions``, live critic parameters, no gradient, one pass per critic."""
         params = getattr(self.loss_module, self._critic_params).detach()
         stacked = len(params.batch_size) > 0  # SAC / TD3: one slice of parameters per critic
         key = self.loss_module.tensor_keys.state_action_value
+        q_td = torch.cat([td.select(*self._critic.in_keys, strict=False)] * len(actions), 0)
+        q_td.set(self._action_key, torch.cat(actions, 0))
         qs = []
         with torch.no_grad():
             for p in (params.unbind(0) if stacked else [params]):
-                q_td = td.select(*self._critic.in_keys, strict=False)
-                q_td.set(self._action_key, action)
                 with p.to_module(self._critic):
-                    qs.append(self._critic(q_td).get(key).squeeze(-1))
-        return torch.stack(qs).min(0)[0]
+                    qs.append(self._critic(q_td.clone(False)).get(key).squeeze(-1))
+        return list(torch.stack(qs).min(0)[0].split(td.shape[0]))
 
     def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         mask = batch.get(PRIOR_KEY, None)
@@ -81,8 +81,12 @@ class PriorBC:
                 self.loss_module.actor_network_params.to_module(actor):
             pi = actor(prior.select(*actor.in_keys, strict=False)).get(self._action_key)
         demo = prior.get(self._action_key)
-        q_pi = self._q(prior, pi.detach())
-        keep = (self._q(prior, demo) > q_pi).float() if self.q_filter else torch.ones_like(q_pi)
+        if self.q_filter:
+            q_pi, q_demo = self._q(prior, pi.detach(), demo)
+            keep = (q_demo > q_pi).float()
+        else:
+            (q_pi,) = self._q(prior, pi.detach())
+            keep = torch.ones_like(q_pi)
         mse = (pi - demo).pow(2).mean(-1)
         loss = self.weight * q_pi.abs().mean() * (keep * mse).sum() / mask.sum()
         return {"loss_bc": loss, "bc_kept": keep.mean()}
