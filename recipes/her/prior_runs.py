@@ -38,6 +38,9 @@ COMMON = ["collector.total_frames=60000", "logger.eval_iter=2500", "logger.eval_
           "logger.target_success=0.9", "collector.resume=true"]
 ANNEAL = ["memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=30000"]
 BC = ["memory.prior_bc=0.4"]  # Q-filtered cloning of the prior's actions (bc.py), TD3+BC's weight
+# RLPD-style: two updates a frame on half the batch (the same matmul cost as one update at 512) and
+# LayerNorm critics, RLPD's stabiliser for high update-to-data ratios on prior data
+UTD2 = ["optim.utd_ratio=2", "optim.batch_size=256", "network.critic_layer_norm=true"]
 
 
 def _runs() -> dict[str, list[str]]:
@@ -48,6 +51,7 @@ def _runs() -> dict[str, list[str]]:
         runs[f"anneal-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]", *ANNEAL]
         runs[f"cleanprior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
         runs[f"bc-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *BC]
+        runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
         runs[f"ownprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PNP_PRIOR}]"]
