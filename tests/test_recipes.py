@@ -148,8 +148,10 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     assert n_prior == 100
     s = run_recipe(tmp_path, "env=pick_and_place", f"memory.path={tmp_path / 'own.zarr'}",
                    f"memory.prior=[{prior}]", "memory.prior_ratio=0.5",
-                   "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50", "memory.prior_bc=0.4")
+                   "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50", "memory.prior_bc=0.4",
+                   "memory.prior_pretrain_bc=5")
     assert s["memory_rows_after"] == 50 and s["updates"] > 0
+    assert "cloned the prior's actions into the actor: 5 steps" in s["stdout"]  # memory.prior_pretrain_bc
     for name in ("loss_bc", "bc_kept"):  # memory.prior_bc: the Q-filtered cloning term is trained and logged
         logged = next((tmp_path / "out" / "her_logging").glob(f"*/scalars/train/{name}.csv")).read_text()
         values = [float(line.split(",")[1]) for line in logged.splitlines() if line[:1].isdigit()]
@@ -182,6 +184,12 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "set memory.prior=" in proc.stderr
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "env=push", f"memory.path={tmp_path / 'r.zarr'}",
+         "memory.prior_pretrain_bc=10", f"hydra.run.dir={tmp_path / 'bad3'}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode != 0 and "prior_pretrain_bc" in proc.stderr and "set memory.prior=" in proc.stderr
     # recipes/her/compare.py: the two finished runs in one plot and one table
     sys.path.insert(0, str(RECIPE_DIR))
     import compare
@@ -341,3 +349,51 @@ def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_pat
         bc(batch)["loss_bc"].backward()
         opt.step()
     assert actor_error() < 0.5 * before
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
+    """memory.prior_pretrain_bc (bc.pretrain_actor): the actor imitates the scripted memory before any RL update."""
+    from hydra import compose, initialize_config_dir
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from recipes.scripted.collect import main as collect
+    from torchrl_robotmem import ZarrStorage
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    import utils
+    from bc import pretrain_actor
+
+    torch.manual_seed(0)
+    prior = tmp_path / "scripted-push.zarr"
+    collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0", "noise=0"])
+    storage = ZarrStorage(prior, read_only=True)
+    rows = storage[: len(storage)]
+    assert rows["episode_success"].max() == 1.0  # the default-parameter controller succeeds
+    with initialize_config_dir(config_dir=str(RECIPE_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["env=push", f"algo={algo}", "network.hidden_sizes=[32,32]"])
+    train_env, eval_env = utils.make_environment(cfg)
+    normalizer = utils.GoalNormalizer()
+    normalizer.update(rows)
+    model, _ = utils.make_agent(cfg, train_env, normalizer)
+    loss = utils.make_loss_module(cfg, model)[0]
+    train_env.close()
+    eval_env.close()
+    ok = rows[rows["episode_success"] > 0.5]
+    actor = loss.actor_network
+
+    def actor_error() -> float:
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            return (model[0](ok.select(*actor.in_keys).clone())["action"] - ok["action"].clamp(-1, 1)).pow(2).mean().item()
+
+    before = actor_error()
+    mse = pretrain_actor(loss, [storage], steps=300, batch_size=64, lr=3e-3)
+    # the policy the collector runs (model[0]) is the one that moved: its parameters are the loss module's
+    assert actor_error() < 0.3 * before and mse < 0.3 * before
+    # no gradient is left behind for the run's own optimiser to step on
+    assert all(p.grad is None for p in loss.actor_network_params.values(True, True))
+    # the prior's episodes must hold what the actor reads
+    bare = ZarrStorage(tmp_path / "bare.zarr", max_size=10)
+    bare.set(range(4), rows[:4].exclude("desired_goal"))
+    with pytest.raises(KeyError, match="desired_goal"):
+        pretrain_actor(loss, [bare], steps=1)

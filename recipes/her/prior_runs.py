@@ -41,6 +41,9 @@ BC = ["memory.prior_bc=0.4"]  # Q-filtered cloning of the prior's actions (bc.py
 # RLPD-style: two updates a frame on half the batch (the same matmul cost as one update at 512) and
 # LayerNorm critics, RLPD's stabiliser for high update-to-data ratios on prior data
 UTD2 = ["optim.utd_ratio=2", "optim.batch_size=256", "network.critic_layer_norm=true"]
+# clone the prior's actions into the actor first (4000 steps), then 3000 critic-only updates, then SAC with
+# the Q-filtered BC term; evaluated every 2500 frames to 20k without the 0.9 stop, to see whether RL keeps it
+CLONE = ["memory.prior_pretrain_bc=4000", *BC]
 
 
 def _runs() -> dict[str, list[str]]:
@@ -51,6 +54,8 @@ def _runs() -> dict[str, list[str]]:
         runs[f"anneal-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]", *ANNEAL]
         runs[f"cleanprior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
         runs[f"bc-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *BC]
+        runs[f"clone-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *CLONE,
+                                       "collector.total_frames=20000", "logger.target_success=null"]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
@@ -66,7 +71,9 @@ def command(name: str, root: str) -> list[str]:
     """The ``train.py`` command line of run ``name``."""
     train = os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py")
     memory = os.path.join(root, f"{name}.zarr")
-    return [sys.executable, train, *RUNS[name], *COMMON, f"memory.path={memory}", f"hydra.run.dir={os.path.join(root, name)}"]
+    own = {o.split("=", 1)[0] for o in RUNS[name]}
+    common = [o for o in COMMON if o.split("=", 1)[0] not in own]  # a run's own settings win
+    return [sys.executable, train, *RUNS[name], *common, f"memory.path={memory}", f"hydra.run.dir={os.path.join(root, name)}"]
 
 
 def state(name: str, root: str) -> str:

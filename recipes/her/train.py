@@ -36,7 +36,7 @@ import hydra
 import numpy as np
 import torch
 import tqdm
-from bc import PriorBC
+from bc import PriorBC, pretrain_actor
 from compare import first_reach
 from hydra.utils import to_absolute_path
 from prior import TRANSITION_KEYS, PriorMix, make_prior_buffers
@@ -135,17 +135,23 @@ def main(cfg: DictConfig):  # noqa: F821
             normalizer.update(buffer[:].select(*mix.keys, strict=False))
     keys = loss_keys(cfg)
     num_updates = progress["updates"] if progress else 0
+    if cfg.memory.get("prior_pretrain_bc", 0) and mix is None:
+        raise ValueError("memory.prior_pretrain_bc clones the actions of memory.prior rows: set memory.prior=[path, ...] too.")
     bc = None
     if cfg.memory.get("prior_bc", 0.0):
         if mix is None:
             raise ValueError("memory.prior_bc clones the actions of memory.prior rows: set memory.prior=[path, ...] too.")
         bc = PriorBC(loss_module, cfg.memory.prior_bc, q_filter=cfg.memory.get("prior_bc_q_filter", True))
 
+    critic_only = False  # pretraining the critics of a cloned actor (memory.prior_pretrain_bc)
+
     def update(batch):
         nonlocal num_updates
         if recall is not None:
             refresh_recall(batch, recall)
         used = keys
+        if critic_only:
+            used = keys[1:2]  # loss_qvalue / loss_value
         if algo == "TD3" and num_updates % cfg.algo.policy_update_delay:
             used = ("loss_qvalue",)  # delayed actor and target updates
         extra = bc(batch) if bc is not None and "loss_actor" in used else {}
@@ -156,7 +162,7 @@ def main(cfg: DictConfig):  # noqa: F821
         total.backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
-        if used is keys:
+        if used is keys or critic_only:
             target_net_updater.step()
         num_updates += 1
         out = loss_td.select(*keys).detach()
@@ -212,10 +218,17 @@ def main(cfg: DictConfig):  # noqa: F821
                 return replay_buffer.sample()
         return replay_buffer.sample()
 
+    # Fresh networks and a prior memory: clone its actions into the actor first
+    if mix is not None and not resumed and cfg.memory.get("prior_pretrain_bc", 0):
+        bc_mse = pretrain_actor(loss_module, [b.storage for b in priors], int(cfg.memory.prior_pretrain_bc),
+                                batch_size=cfg.optim.batch_size, lr=cfg.optim.lr, seed=cfg.seed)
+        print(f"cloned the prior's actions into the actor: {cfg.memory.prior_pretrain_bc} steps, mse {bc_mse:.4f}")
+        critic_only = True  # the pretraining updates below evaluate the cloned actor, they do not move it
     # Fresh networks on a memory that already holds transitions: learn from it first
     if (remembered or mix is not None) and not resumed and cfg.memory.pretrain_updates:
         for _ in tqdm.trange(cfg.memory.pretrain_updates, desc="updates on the memory", leave=False):
             update(sample())
+    critic_only = False
     success = curve[-1][1] if curve else log_eval(0)
     save(finished=False)
 
