@@ -56,6 +56,10 @@ def _runs() -> dict[str, list[str]]:
         runs[f"bc-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *BC]
         runs[f"clone-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *CLONE,
                                        "collector.total_frames=20000", "logger.target_success=null"]
+        # the same with TD3 + unfiltered BC (TD3+BC, Fujimoto & Gu 2021): SAC's online updates undid the clone
+        runs[f"clonetd3-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]",
+                                          *CLONE, "memory.prior_bc_q_filter=false", "collector.init_random_frames=0",
+                                          "collector.total_frames=20000", "logger.target_success=null"]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
