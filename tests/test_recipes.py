@@ -149,7 +149,7 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     s = run_recipe(tmp_path, "env=pick_and_place", f"memory.path={tmp_path / 'own.zarr'}",
                    f"memory.prior=[{prior}]", "memory.prior_ratio=0.5",
                    "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50", "memory.prior_bc=0.4",
-                   "memory.prior_pretrain_bc=5")
+                   "memory.prior_pretrain_bc=5", "memory.prior_bc_original_goals=true")
     assert s["memory_rows_after"] == 50 and s["updates"] > 0
     assert "cloned the prior's actions into the actor: 5 steps" in s["stdout"]  # memory.prior_pretrain_bc
     for name in ("loss_bc", "bc_kept"):  # memory.prior_bc: the Q-filtered cloning term is trained and logged
@@ -395,5 +395,5 @@ def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
     # the prior's episodes must hold what the actor reads
     bare = ZarrStorage(tmp_path / "bare.zarr", max_size=10)
     bare.set(range(4), rows[:4].exclude("desired_goal"))
-    with pytest.raises(KeyError, match="desired_goal"):
+    with pytest.raises(KeyError, match="desired_goal"):  # also what prior_bc_original_goals reads
         pretrain_actor(loss, [bare], steps=1)

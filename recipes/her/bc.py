@@ -27,7 +27,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
-__all__ = ["PRIOR_KEY", "PriorBC", "pretrain_actor"]
+__all__ = ["PRIOR_KEY", "PriorBC", "load_demos", "pretrain_actor"]
 
 #: bool ``[batch]``: True for the rows a batch drew from a prior memory.
 PRIOR_KEY = "from_prior"
@@ -47,10 +47,12 @@ class PriorBC:
         >>> (loss_td["loss_actor"] + extra["loss_bc"]).backward()
     """
 
-    def __init__(self, loss_module: LossModule, weight: float, q_filter: bool = True) -> None:
+    def __init__(self, loss_module: LossModule, weight: float, q_filter: bool = True,
+                 demos: TensorDictBase | None = None) -> None:
         if weight < 0:
             raise ValueError(f"memory.prior_bc must be >= 0, got {weight}.")
         self.loss_module, self.weight, self.q_filter = loss_module, float(weight), bool(q_filter)
+        self.demos = demos  # set: imitate these rows (original goals, see load_demos) instead of the batch's prior rows
         self._action_key = getattr(loss_module.tensor_keys, "action", "action")  # DDPG's keys name none
         if hasattr(loss_module, "qvalue_network"):  # SAC, TD3: stacked twin critics
             self._critic, self._critic_params = loss_module.qvalue_network, "qvalue_network_params"
@@ -76,7 +78,10 @@ class PriorBC:
         if not self.weight or mask is None or not mask.any():  # nothing to imitate in this batch
             zero = torch.zeros(())
             return {"loss_bc": zero, "bc_kept": zero}
-        prior = batch[mask]
+        if self.demos is not None:  # as many rows as the batch's prior share, with their original goals
+            prior = self.demos[torch.randint(self.demos.shape[0], (int(mask.sum()),))]
+        else:
+            prior = batch[mask]
         actor = self.loss_module.actor_network
         with set_exploration_type(ExplorationType.DETERMINISTIC), \
                 self.loss_module.actor_network_params.to_module(actor):
@@ -89,7 +94,7 @@ class PriorBC:
             (q_pi,) = self._q(prior, pi.detach())
             keep = torch.ones_like(q_pi)
         mse = (pi - demo).pow(2).mean(-1)
-        loss = self.weight * q_pi.abs().mean() * (keep * mse).sum() / mask.sum()
+        loss = self.weight * q_pi.abs().mean() * (keep * mse).sum() / prior.shape[0]
         return {"loss_bc": loss, "bc_kept": keep.mean()}
 
 
@@ -129,19 +134,7 @@ def pretrain_actor(
     """
     actor = loss_module.actor_network
     action_key = getattr(loss_module.tensor_keys, "action", "action")
-    keys = [*actor.in_keys, action_key]
-    parts = []
-    for storage in storages:
-        rows = storage[: len(storage)]
-        if success_only and "episode_success" in rows.keys():
-            rows = rows[rows.get("episode_success").reshape(rows.shape[0]) > 0.5]
-        missing = [k for k in keys if k not in rows.keys(True)]
-        if missing:
-            raise KeyError(f"memory.prior_pretrain_bc: a prior memory holds no {missing}; the actor reads {actor.in_keys}.")
-        parts.append(rows.select(*keys).clone())
-    data = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
-    if not data.shape[0]:
-        raise ValueError("memory.prior_pretrain_bc: no prior rows to clone (no successful episodes?).")
+    data = load_demos(loss_module, storages, success_only)
     low, high = -1.0, 1.0
     spec = getattr(actor, "spec", None)
     if spec is not None and action_key in spec.keys():
@@ -162,3 +155,26 @@ def pretrain_actor(
         losses.append(loss.item())
     opt.zero_grad(set_to_none=True)  # no stale gradient for the run's own optimiser to step on
     return float(sum(losses[-100:]) / len(losses[-100:]))
+
+
+def load_demos(loss_module: LossModule, storages: list, success_only: bool = True) -> TensorDictBase:
+    """The prior memories' rows an actor can imitate: what the actor reads and the action, original goals.
+
+    ``success_only`` keeps the episodes whose ``episode_success`` is set, where the memory records it.
+    """
+    actor = loss_module.actor_network
+    action_key = getattr(loss_module.tensor_keys, "action", "action")
+    keys = [*actor.in_keys, action_key]
+    parts = []
+    for storage in storages:
+        rows = storage[: len(storage)]
+        if success_only and "episode_success" in rows.keys():
+            rows = rows[rows.get("episode_success").reshape(rows.shape[0]) > 0.5]
+        missing = [k for k in keys if k not in rows.keys(True)]
+        if missing:
+            raise KeyError(f"a prior memory holds no {missing}: the actor reads {actor.in_keys} (memory.prior_pretrain_bc, prior_bc_original_goals).")
+        parts.append(rows.select(*keys).clone())
+    data = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
+    if not data.shape[0]:
+        raise ValueError("no prior rows to imitate (no successful episodes in memory.prior?).")
+    return data

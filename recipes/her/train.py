@@ -36,7 +36,7 @@ import hydra
 import numpy as np
 import torch
 import tqdm
-from bc import PriorBC, pretrain_actor
+from bc import PriorBC, load_demos, pretrain_actor
 from compare import first_reach
 from hydra.utils import to_absolute_path
 from prior import TRANSITION_KEYS, PriorMix, make_prior_buffers
@@ -141,7 +141,8 @@ def main(cfg: DictConfig):  # noqa: F821
     if cfg.memory.get("prior_bc", 0.0):
         if mix is None:
             raise ValueError("memory.prior_bc clones the actions of memory.prior rows: set memory.prior=[path, ...] too.")
-        bc = PriorBC(loss_module, cfg.memory.prior_bc, q_filter=cfg.memory.get("prior_bc_q_filter", True))
+        demos = load_demos(loss_module, [b.storage for b in priors]) if cfg.memory.get("prior_bc_original_goals") else None
+        bc = PriorBC(loss_module, cfg.memory.prior_bc, q_filter=cfg.memory.get("prior_bc_q_filter", True), demos=demos)
 
     critic_only = False  # pretraining the critics of a cloned actor (memory.prior_pretrain_bc)
 
