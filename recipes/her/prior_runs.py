@@ -65,6 +65,8 @@ def _runs() -> dict[str, list[str]]:
                                               for o in runs[f"clonetd3-push-s{seed}"]]
         # ... imitating only original-goal rows of successful prior episodes (relabelled goals are not the scripted aim)
         runs[f"clonetd3og-push-s{seed}"] = [*runs[f"clonetd3bc4-push-s{seed}"], "memory.prior_bc_original_goals=true"]
+        # ... with the actor frozen for the first 10k frames, so the critics learn the clone's returns first
+        runs[f"clonefreeze-push-s{seed}"] = [*runs[f"clonetd3og-push-s{seed}"], "memory.actor_freeze_frames=10000"]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]

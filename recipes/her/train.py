@@ -230,6 +230,7 @@ def main(cfg: DictConfig):  # noqa: F821
         for _ in tqdm.trange(cfg.memory.pretrain_updates, desc="updates on the memory", leave=False):
             update(sample())
     critic_only = False
+    freeze_frames = int(cfg.memory.get("actor_freeze_frames", 0) or 0)
     success = curve[-1][1] if curve else log_eval(0)
     save(finished=False)
 
@@ -264,6 +265,7 @@ def main(cfg: DictConfig):  # noqa: F821
             mix.ratio = prior_ratio(cfg, collected_frames)
             metrics["train/prior_ratio"] = mix.ratio
         if collected_frames >= init_random_frames:
+            critic_only = collected_frames <= freeze_frames  # memory.actor_freeze_frames: critics learn the actor's returns first
             n = max(1, int(frames * utd_ratio))
             losses = TensorDict(batch_size=[n])
             query = current_goals(collector, data) if goal_sampler is not None else None
