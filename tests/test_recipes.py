@@ -149,13 +149,16 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     s = run_recipe(tmp_path, "env=pick_and_place", f"memory.path={tmp_path / 'own.zarr'}",
                    f"memory.prior=[{prior}]", "memory.prior_ratio=0.5",
                    "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50", "memory.prior_bc=0.4",
-                   "memory.prior_pretrain_bc=5", "memory.prior_bc_original_goals=true")
+                   "memory.prior_pretrain_bc=5", "memory.prior_bc_original_goals=true",
+                   "memory.actor_freeze_frames=25")
     assert s["memory_rows_after"] == 50 and s["updates"] > 0
     assert "cloned the prior's actions into the actor: 5 steps" in s["stdout"]  # memory.prior_pretrain_bc
     for name in ("loss_bc", "bc_kept"):  # memory.prior_bc: the Q-filtered cloning term is trained and logged
         logged = next((tmp_path / "out" / "her_logging").glob(f"*/scalars/train/{name}.csv")).read_text()
         values = [float(line.split(",")[1]) for line in logged.splitlines() if line[:1].isdigit()]
         assert len(values) == 2 and all(v >= 0 for v in values)
+        if name == "loss_bc":  # memory.actor_freeze_frames=25: the first 25 frames train the critics only
+            assert values[0] == 0.0
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/prior_ratio.csv")).read_text()
     ratios = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
     assert ratios == [0.3, 0.1]  # annealed from 0.5: after 25 and 50 of 50 frames
