@@ -106,6 +106,7 @@ def pretrain_actor(
     lr: float = 1e-3,
     success_only: bool = True,
     seed: int = 0,
+    demos: TensorDictBase | None = None,
 ) -> float:
     """Clone the prior memories' actions into the actor before any RL update (behaviour cloning).
 
@@ -124,6 +125,7 @@ def pretrain_actor(
         lr (float): Adam learning rate.
         success_only (bool): only the rows of successful episodes (when the memory says which).
         seed (int): seed of the row draws.
+        demos (TensorDictBase, optional): the rows of :func:`load_demos`, when already read.
 
     Returns:
         the mean squared error of the last 100 steps.
@@ -134,7 +136,7 @@ def pretrain_actor(
     """
     actor = loss_module.actor_network
     action_key = getattr(loss_module.tensor_keys, "action", "action")
-    data = load_demos(loss_module, storages, success_only)
+    data = demos if demos is not None else load_demos(loss_module, storages, success_only)
     low, high = -1.0, 1.0
     spec = getattr(actor, "spec", None)
     if spec is not None and action_key in spec.keys():

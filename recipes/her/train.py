@@ -135,14 +135,16 @@ def main(cfg: DictConfig):  # noqa: F821
             normalizer.update(buffer[:].select(*mix.keys, strict=False))
     keys = loss_keys(cfg)
     num_updates = progress["updates"] if progress else 0
-    if cfg.memory.get("prior_pretrain_bc", 0) and mix is None:
-        raise ValueError("memory.prior_pretrain_bc clones the actions of memory.prior rows: set memory.prior=[path, ...] too.")
+    for option in ("prior_bc", "prior_pretrain_bc"):
+        if cfg.memory.get(option, 0) and mix is None:
+            raise ValueError(f"memory.{option} clones the actions of memory.prior rows: set memory.prior=[path, ...] too.")
+    demos = None  # the prior's successful rows with their own goals, read once for both options below
+    if cfg.memory.get("prior_pretrain_bc", 0) or (cfg.memory.get("prior_bc", 0) and cfg.memory.get("prior_bc_original_goals")):
+        demos = load_demos(loss_module, [b.storage for b in priors])
     bc = None
     if cfg.memory.get("prior_bc", 0.0):
-        if mix is None:
-            raise ValueError("memory.prior_bc clones the actions of memory.prior rows: set memory.prior=[path, ...] too.")
-        demos = load_demos(loss_module, [b.storage for b in priors]) if cfg.memory.get("prior_bc_original_goals") else None
-        bc = PriorBC(loss_module, cfg.memory.prior_bc, q_filter=cfg.memory.get("prior_bc_q_filter", True), demos=demos)
+        bc = PriorBC(loss_module, cfg.memory.prior_bc, q_filter=cfg.memory.get("prior_bc_q_filter", True),
+                     demos=demos if cfg.memory.get("prior_bc_original_goals") else None)
 
     critic_only = False  # pretraining the critics of a cloned actor (memory.prior_pretrain_bc)
 
@@ -222,7 +224,7 @@ def main(cfg: DictConfig):  # noqa: F821
     # Fresh networks and a prior memory: clone its actions into the actor first
     if mix is not None and not resumed and cfg.memory.get("prior_pretrain_bc", 0):
         bc_mse = pretrain_actor(loss_module, [b.storage for b in priors], int(cfg.memory.prior_pretrain_bc),
-                                batch_size=cfg.optim.batch_size, lr=cfg.optim.lr, seed=cfg.seed)
+                                batch_size=cfg.optim.batch_size, lr=cfg.optim.lr, seed=cfg.seed, demos=demos)
         print(f"cloned the prior's actions into the actor: {cfg.memory.prior_pretrain_bc} steps, mse {bc_mse:.4f}")
         critic_only = True  # the pretraining updates below evaluate the cloned actor, they do not move it
     # Fresh networks on a memory that already holds transitions: learn from it first
