@@ -137,6 +137,52 @@ def test_critic_layer_norm_option(tmp_path):
         eval_env.close()
 
 
+def test_actor_lr_option(tmp_path):
+    """optim.actor_lr sets the actor's learning rate only; null leaves it at optim.lr."""
+    from hydra import compose, initialize_config_dir
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    from utils import GoalNormalizer, make_agent, make_environment, make_loss_module, make_optimizer
+
+    for algo, actor_lr, expected in (("td3", "1e-5", 1e-5), ("sac", "null", 1e-3)):
+        with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=[f"algo={algo}", "network.hidden_sizes=[8]", f"optim.actor_lr={actor_lr}",
+                                               f"memory.path={tmp_path / 'm.zarr'}"])
+        train_env, eval_env = make_environment(cfg)
+        try:
+            model, _ = make_agent(cfg, train_env, GoalNormalizer())
+            loss = make_loss_module(cfg, model)[0]
+            optimizer = make_optimizer(cfg, loss)
+            actor_params = {id(p) for p in loss.actor_network_params.flatten_keys().values()}
+            for group in optimizer.param_groups:
+                is_actor = all(id(p) in actor_params for p in group["params"])
+                assert group["lr"] == (expected if is_actor else 1e-3), (algo, is_actor, group["lr"])
+        finally:
+            train_env.close()
+            eval_env.close()
+
+
+def _saved_normalizer(agent: Path, overrides: list[str]):
+    """The GoalNormalizer saved in a run's agent checkpoint."""
+    from hydra import compose, initialize_config_dir
+    from torchrl.checkpoint import Checkpoint
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    from utils import GoalNormalizer, make_agent, make_environment, make_loss_module, make_optimizer
+
+    with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    train_env, eval_env = make_environment(cfg)
+    try:
+        normalizer = GoalNormalizer()
+        loss = make_loss_module(cfg, make_agent(cfg, train_env, normalizer)[0])[0]
+        Checkpoint(loss_module=loss, optimizer=make_optimizer(cfg, loss), normalizer=normalizer).load(str(agent))
+    finally:
+        train_env.close()
+        eval_env.close()
+    return normalizer
+
+
 def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     """memory.prior: a scripted FetchPush memory, read-only, half of every batch (issue 9)."""
     from recipes.scripted.collect import main as collect
@@ -150,8 +196,12 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
                    f"memory.prior=[{prior}]", "memory.prior_ratio=0.5",
                    "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50", "memory.prior_bc=0.4",
                    "memory.prior_pretrain_bc=5", "memory.prior_bc_original_goals=true",
-                   "memory.actor_freeze_frames=25")
+                   "memory.actor_freeze_frames=25", "memory.freeze_normalizer=true")
     assert s["memory_rows_after"] == 50 and s["updates"] > 0
+    # memory.freeze_normalizer: the statistics are the prior's alone (the 50 own rows would make 150)
+    normalizer = _saved_normalizer(tmp_path / "own.zarr-agent", ["env=pick_and_place", "network.hidden_sizes=[16,16]"])
+    assert normalizer.stats["observation"][0].item() == n_prior
+    assert normalizer.stats["goal"][0].item() == 2 * n_prior
     assert "cloned the prior's actions into the actor: 5 steps" in s["stdout"]  # memory.prior_pretrain_bc
     for name in ("loss_bc", "bc_kept"):  # memory.prior_bc: the Q-filtered cloning term is trained and logged
         logged = next((tmp_path / "out" / "her_logging").glob(f"*/scalars/train/{name}.csv")).read_text()

@@ -67,6 +67,10 @@ def _runs() -> dict[str, list[str]]:
         runs[f"clonetd3og-push-s{seed}"] = [*runs[f"clonetd3bc4-push-s{seed}"], "memory.prior_bc_original_goals=true"]
         # ... with the actor frozen for the first 10k frames, so the critics learn the clone's returns first
         runs[f"clonefreeze-push-s{seed}"] = [*runs[f"clonetd3og-push-s{seed}"], "memory.actor_freeze_frames=10000"]
+        # keep the clone: frozen normaliser statistics (the clone's inputs keep their meaning) and a 100x
+        # smaller actor learning rate, to 60k frames without the 0.9 stop
+        runs[f"keep-push-s{seed}"] = [o for o in runs[f"clonetd3og-push-s{seed}"] if not o.startswith("collector.total")]
+        runs[f"keep-push-s{seed}"] += ["memory.freeze_normalizer=true", "optim.actor_lr=1e-5"]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]

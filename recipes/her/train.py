@@ -114,6 +114,7 @@ def main(cfg: DictConfig):  # noqa: F821
     optimizer = make_optimizer(cfg, loss_module)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
     progress = run_progress(cfg, checkpoint_path, remembered)  # collector.resume: where the run stopped
+    freeze_stats = bool(cfg.memory.get("freeze_normalizer", False))  # memory.freeze_normalizer: the start's statistics
     resumed = (bool(cfg.memory.resume_agent) or progress is not None) and Checkpoint.is_checkpoint(checkpoint_path)
     if resumed:
         try:
@@ -128,7 +129,7 @@ def main(cfg: DictConfig):  # noqa: F821
         normalizer.update(replay_buffer[:])  # fresh networks: statistics of the whole memory
     if progress is not None:
         remembered = progress["memory_rows_before"]
-        if len(replay_buffer) > progress["memory_rows"]:  # collected after the last checkpoint
+        if len(replay_buffer) > progress["memory_rows"] and not freeze_stats:  # collected after the last checkpoint
             normalizer.update(replay_buffer.storage[progress["memory_rows"]:len(replay_buffer)])
     if mix is not None and not resumed:
         for buffer in priors:
@@ -256,7 +257,8 @@ def main(cfg: DictConfig):  # noqa: F821
         # Extend: flat transitions; recalled priors are recomputed at sampling
         data = data.reshape(-1).exclude(*RECALL_KEYS, *[("next", k) for k in RECALL_KEYS])
         replay_buffer.extend(data)
-        normalizer.update(data)
+        if not freeze_stats:
+            normalizer.update(data)
         frames = data.numel()
         collected_frames += frames
         pbar.update(frames)

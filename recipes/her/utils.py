@@ -446,15 +446,20 @@ def make_loss_module(cfg: DictConfig, model):
 
 
 def make_optimizer(cfg: DictConfig, loss_module):
-    """One Adam per parameter group (actor, critic, and SAC's entropy), grouped."""
+    """One Adam per parameter group (actor, critic, and SAC's entropy), grouped.
+
+    The actor's learning rate is ``optim.actor_lr`` where set (a smaller one keeps a
+    cloned actor near its demonstrations under the critics' gradient), else ``optim.lr``.
+    """
     critic = loss_module.qvalue_network_params if hasattr(loss_module, "qvalue_network_params") \
         else loss_module.value_network_params
     groups = [
         list(loss_module.actor_network_params.flatten_keys().values()),
         list(critic.flatten_keys().values()),
     ]
-    kw = dict(lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay, eps=cfg.optim.adam_eps)
-    optimizers = [optim.Adam(g, **kw) for g in groups]
+    kw = dict(weight_decay=cfg.optim.weight_decay, eps=cfg.optim.adam_eps)
+    actor_lr = cfg.optim.get("actor_lr") or cfg.optim.lr
+    optimizers = [optim.Adam(g, lr=lr, **kw) for g, lr in zip(groups, (actor_lr, cfg.optim.lr))]
     if cfg.algo.name == "SAC":
         optimizers.append(optim.Adam([loss_module.log_alpha], lr=cfg.optim.lr))
     return group_optimizers(*optimizers)
