@@ -27,7 +27,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
-__all__ = ["PRIOR_KEY", "PriorBC", "load_demos", "pretrain_actor"]
+__all__ = ["PRIOR_KEY", "CRRActorLoss", "PriorBC", "load_demos", "pretrain_actor"]
 
 #: bool ``[batch]``: True for the rows a batch drew from a prior memory.
 PRIOR_KEY = "from_prior"
@@ -82,20 +82,57 @@ class PriorBC:
             prior = self.demos[torch.randint(self.demos.shape[0], (int(mask.sum()),))]
         else:
             prior = batch[mask]
+        mse, keep, q_pi = self._filtered_mse(prior)
+        loss = self.weight * q_pi.abs().mean() * (keep * mse).sum() / prior.shape[0]
+        return {"loss_bc": loss, "bc_kept": keep.mean()}
+
+    def _filtered_mse(self, rows: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Per row: squared distance of the actor's deterministic action to the stored one, the Q filter, Q(s, pi(s))."""
         actor = self.loss_module.actor_network
         with set_exploration_type(ExplorationType.DETERMINISTIC), \
                 self.loss_module.actor_network_params.to_module(actor):
-            pi = actor(prior.select(*actor.in_keys, strict=False)).get(self._action_key)
-        demo = prior.get(self._action_key)
+            pi = actor(rows.select(*actor.in_keys, strict=False)).get(self._action_key)
+        stored = rows.get(self._action_key)
         if self.q_filter:
-            q_pi, q_demo = self._q(prior, pi.detach(), demo)
-            keep = (q_demo > q_pi).float()
+            q_pi, q_stored = self._q(rows, pi.detach(), stored)
+            keep = (q_stored > q_pi).float()
         else:
-            (q_pi,) = self._q(prior, pi.detach())
+            (q_pi,) = self._q(rows, pi.detach())
             keep = torch.ones_like(q_pi)
-        mse = (pi - demo).pow(2).mean(-1)
-        loss = self.weight * q_pi.abs().mean() * (keep * mse).sum() / prior.shape[0]
-        return {"loss_bc": loss, "bc_kept": keep.mean()}
+        return (pi - stored).pow(2).mean(-1), keep, q_pi
+
+
+class CRRActorLoss(PriorBC):
+    """The actor's loss as critic-regularised regression (CRR, Wang et al. 2020, binary filter).
+
+    ``optim.actor_update=crr`` replaces the algorithm's own actor loss (the
+    critics' action gradient, ``-Q(s, pi(s))``) by regression onto the batch's
+    stored actions that the critics rate above the actor's, on every row (the
+    run's own and the prior's, with their relabelled goals)::
+
+        loss_actor = sum(keep * mean_dims((pi(s) - a)^2)) / batch,   keep = 1[min_i Q_i(s, a) > min_i Q_i(s, pi(s))]
+
+    The actor only ever moves towards actions that were taken, so a critic
+    that is wrong between them cannot pull it off the data (the TD3+BC anchor
+    leaves an equilibrium offset proportional to the critics' action gradient:
+    enough to undo a precise cloned policy, docs/results.md section 11). The
+    critics are trained by the algorithm's own loss, unchanged.
+
+    Args:
+        loss_module: the run's SAC / TD3 / DDPG loss.
+
+    Example:
+        >>> crr = CRRActorLoss(loss_module)
+        >>> out = crr(batch)                 # {"loss_actor": ..., "crr_kept": ...}
+        >>> (loss_td["loss_qvalue"] + out["loss_actor"]).backward()
+    """
+
+    def __init__(self, loss_module: LossModule) -> None:
+        super().__init__(loss_module, weight=1.0, q_filter=True)
+
+    def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        mse, keep, _ = self._filtered_mse(batch)
+        return {"loss_actor": (keep * mse).sum() / batch.shape[0], "crr_kept": keep.mean()}
 
 
 def pretrain_actor(

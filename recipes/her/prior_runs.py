@@ -71,6 +71,12 @@ def _runs() -> dict[str, list[str]]:
         # smaller actor learning rate, to 60k frames without the 0.9 stop
         runs[f"keep-push-s{seed}"] = [o for o in runs[f"clonetd3og-push-s{seed}"] if not o.startswith("collector.total")]
         runs[f"keep-push-s{seed}"] += ["memory.freeze_normalizer=true", "optim.actor_lr=1e-5"]
+        # the cloned actor trained by critic-regularised regression (bc.CRRActorLoss): no action gradient, so
+        # no offset from the data; frozen normaliser statistics; no extra BC term
+        runs[f"crr-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]",
+                                     "memory.prior_pretrain_bc=4000", "collector.init_random_frames=0",
+                                     "memory.freeze_normalizer=true", "optim.actor_update=crr",
+                                     "logger.target_success=null"]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]

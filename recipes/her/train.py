@@ -36,7 +36,7 @@ import hydra
 import numpy as np
 import torch
 import tqdm
-from bc import PriorBC, load_demos, pretrain_actor
+from bc import CRRActorLoss, PriorBC, load_demos, pretrain_actor
 from compare import first_reach
 from hydra.utils import to_absolute_path
 from prior import TRANSITION_KEYS, PriorMix, make_prior_buffers
@@ -147,6 +147,10 @@ def main(cfg: DictConfig):  # noqa: F821
         bc = PriorBC(loss_module, cfg.memory.prior_bc, q_filter=cfg.memory.get("prior_bc_q_filter", True),
                      demos=demos if cfg.memory.get("prior_bc_original_goals") else None)
 
+    actor_update = cfg.optim.get("actor_update", "q_gradient")
+    if actor_update not in ("q_gradient", "crr"):
+        raise ValueError(f"optim.actor_update must be q_gradient or crr, got {actor_update!r}.")
+    crr = CRRActorLoss(loss_module) if actor_update == "crr" else None
     critic_only = False  # pretraining the critics of a cloned actor (memory.prior_pretrain_bc)
 
     def update(batch):
@@ -160,6 +164,9 @@ def main(cfg: DictConfig):  # noqa: F821
             used = ("loss_qvalue",)  # delayed actor and target updates
         extra = bc(batch) if bc is not None and "loss_actor" in used else {}
         loss_td = loss_module(batch)
+        if crr is not None:  # optim.actor_update=crr: regression onto the better stored actions, no action gradient
+            regressed = crr(batch) if "loss_actor" in used else {"loss_actor": torch.zeros(()), "crr_kept": torch.zeros(())}
+            loss_td.set("loss_actor", regressed["loss_actor"])
         total = sum(loss_td[k] for k in used)
         if extra:
             total = total + extra["loss_bc"]
@@ -170,6 +177,8 @@ def main(cfg: DictConfig):  # noqa: F821
             target_net_updater.step()
         num_updates += 1
         out = loss_td.select(*keys).detach()
+        if crr is not None:
+            out.set("crr_kept", regressed["crr_kept"].detach())
         if bc is not None:  # the same keys every update (zeros on TD3's critic-only steps)
             out.update({k: extra.get(k, torch.zeros(())).detach() for k in ("loss_bc", "bc_kept")})
         return out
