@@ -34,6 +34,7 @@ import time
 PUSH_PRIOR = "bench_results/prior/scripted-push-500.zarr"
 PUSH_PRIOR_CLEAN = "bench_results/prior/scripted-push-500-n0.zarr"  # default parameters: 96.6% success
 PNP_PRIOR = "bench_results/prior/scripted-pnp-500.zarr"
+PNP_PRIOR_CLEAN = "bench_results/prior/scripted-pnp-500-n0.zarr"  # default parameters: 100% in docs/scripted.md
 COMMON = ["collector.total_frames=60000", "logger.eval_iter=2500", "logger.eval_episodes=100",
           "logger.target_success=0.9", "collector.resume=true"]
 ANNEAL = ["memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=30000"]
@@ -77,11 +78,20 @@ def _runs() -> dict[str, list[str]]:
                                      "memory.prior_pretrain_bc=4000", "collector.init_random_frames=0",
                                      "memory.freeze_normalizer=true", "optim.actor_update=crr",
                                      "logger.target_success=null"]
+        # ... with a quarter of TD3's exploration noise (0.05): the regression targets of the run's own rows are
+        # the clone's actions plus that noise, which the actor fits
+        runs[f"crrlow-push-s{seed}"] = [*runs[f"crr-push-s{seed}"], "algo.exploration_noise=0.05"]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
         runs[f"ownprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PNP_PRIOR}]"]
         runs[f"scratch-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}"]
+        # the cloned actor on PickAndPlace: from its own default-parameter memory, and from FetchPush's (cross-task);
+        # stops at the first evaluation at or above 0.9 (frame 0 when the clone alone does it)
+        clone = ["env=pick_and_place", "algo=td3", f"seed={seed}", "memory.prior_pretrain_bc=4000",
+                 "collector.init_random_frames=0", "memory.freeze_normalizer=true", "optim.actor_update=crr"]
+        runs[f"clone-pnp-s{seed}"] = [*clone, f"memory.prior=[{PNP_PRIOR_CLEAN}]"]
+        runs[f"clonepush-pnp-s{seed}"] = [*clone, f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
     return runs
 
 
