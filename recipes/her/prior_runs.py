@@ -91,6 +91,8 @@ def _runs() -> dict[str, list[str]]:
         clone = ["env=pick_and_place", "algo=td3", f"seed={seed}", "memory.prior_pretrain_bc=4000",
                  "collector.init_random_frames=0", "memory.freeze_normalizer=true", "optim.actor_update=crr"]
         runs[f"clone-pnp-s{seed}"] = [*clone, f"memory.prior=[{PNP_PRIOR_CLEAN}]"]
+        # ... from the noisy-parameter memory (80.2%): only its 401 successful episodes are cloned
+        runs[f"clonenoisy-pnp-s{seed}"] = [*clone, f"memory.prior=[{PNP_PRIOR}]"]
         # (a probe: the Push clone's success on PickAndPlace at frame 0, and 2500 frames of RL after it)
         runs[f"clonepush-pnp-s{seed}"] = [*clone, f"memory.prior=[{PUSH_PRIOR_CLEAN}]", "collector.total_frames=2500"]
     return runs
