@@ -10,7 +10,10 @@ demonstration states. One Adam step moves every weight by up to the learning
 rate, so ``N`` steps at ``lr`` move a weight by up to ``N * lr``: 1250 actor
 steps at 1e-5 reach 0.0125::
 
-    python recipes/her/clone_sensitivity.py bench_results/prior/scripted-push-500-n0.zarr
+    python recipes/her/clone_sensitivity.py bench_results/prior/scripted-push-500-n0.zarr \
+        --plot docs/img/clone_sensitivity.png
+
+``--replot FILE.jsonl`` redraws the plot from the printed rows without re-running.
 """
 from __future__ import annotations
 
@@ -71,6 +74,32 @@ def sensitivity(prior: str, sigmas: list[float], steps: int = 4000, seed: int = 
     return out
 
 
+def plot(rows: list[dict], out: str) -> None:
+    """Evaluated success and mean action change against the weight noise (log x axis)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    clean = [r["success"] for r in rows if r["sigma"] == 0]
+    rows = [r for r in rows if r["sigma"] > 0]
+    sigmas = [r["sigma"] for r in rows]
+    fig, ax = plt.subplots(figsize=(5.5, 3.5))
+    ax.plot(sigmas, [r["success"] for r in rows], "o-", label="evaluated success (100 episodes)")
+    ax.plot(sigmas, [r["mean_abs_action_change"] for r in rows], "s--", label="mean |action change|")
+    if clean:
+        ax.axhline(clean[0], color="grey", ls=":", label=f"no noise: {clean[0]:.2f}")
+    ax.set_xscale("log")
+    ax.set_xlabel("std of the Gaussian noise added to every actor weight")
+    ax.set_ylim(0, 1)
+    ax.set_title("FetchPush-v4: the cloned actor under weight noise")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    print(f"wrote {out}")
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("prior", help="a scripted memory (recipes.scripted.collect)")
@@ -79,8 +108,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--env", default="push")
+    p.add_argument("--plot", default="", help="write a PNG of success against sigma here")
+    p.add_argument("--replot", default="", help="a file of the printed JSON rows: plot them, run nothing")
     args = p.parse_args(argv)
-    sensitivity(args.prior, [float(s) for s in args.sigmas.split(",")], args.steps, args.seed, args.episodes, args.env)
+    if args.replot:
+        with open(args.replot) as f:
+            rows = [json.loads(line) for line in f if line.startswith("{")]
+    else:
+        rows = sensitivity(args.prior, [float(s) for s in args.sigmas.split(",")], args.steps, args.seed,
+                           args.episodes, args.env)
+    if args.plot:
+        plot(rows, args.plot)
 
 
 if __name__ == "__main__":
