@@ -502,3 +502,22 @@ def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
     bare.set(range(4), rows[:4].exclude("desired_goal"))
     with pytest.raises(KeyError, match="desired_goal"):  # also what prior_bc_original_goals reads
         pretrain_actor(loss, [bare], steps=1)
+
+
+def test_clone_sensitivity_reports_success_against_weight_noise(tmp_path):
+    """recipes/her/clone_sensitivity.py: clones a scripted memory, perturbs the weights, evaluates, plots."""
+    from recipes.scripted.collect import main as collect
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    from clone_sensitivity import main, sensitivity
+
+    prior = tmp_path / "scripted-push.zarr"
+    collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0", "noise=0"])
+    rows = sensitivity(str(prior), [0.0, 0.5], steps=20, episodes=2)
+    assert [r["sigma"] for r in rows] == [0.0, 0.5]
+    assert rows[0]["mean_abs_action_change"] == 0.0 < rows[1]["mean_abs_action_change"]
+    assert all(0.0 <= r["success"] <= 1.0 for r in rows)
+    jsonl = tmp_path / "rows.jsonl"
+    jsonl.write_text("\n".join(json.dumps(r) for r in rows))
+    main(["unused", "--replot", str(jsonl), "--plot", str(tmp_path / "s.png")])
+    assert (tmp_path / "s.png").stat().st_size > 0
