@@ -347,9 +347,8 @@ def test_prior_runs_queue_lists_resumable_commands(tmp_path, capsys):
         prior_runs.main(["--root", str(tmp_path), "--only", "nope"])
 
 
-@pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
-def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_path, algo):
-    """memory.prior_bc (bc.py): the Q-filtered behaviour-cloning term, on a real scripted memory and real losses."""
+def _push_loss_and_scripted_batch(tmp_path: Path, algo: str):
+    """A fresh FetchPush loss module of ``algo`` (32x32 networks) and 64 rows of a 2-episode scripted memory."""
     from hydra import compose, initialize_config_dir
 
     from recipes.scripted.collect import main as collect
@@ -357,7 +356,6 @@ def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_pat
 
     sys.path.insert(0, str(RECIPE_DIR))
     import utils
-    from bc import PRIOR_KEY, PriorBC
 
     torch.manual_seed(0)
     prior = tmp_path / "scripted-push.zarr"
@@ -369,7 +367,16 @@ def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_pat
     loss = utils.make_loss_module(cfg, model)[0]
     train_env.close()
     eval_env.close()
-    batch = ZarrStorage(prior, read_only=True)[:64]
+    return loss, ZarrStorage(prior, read_only=True)[:64]
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
+def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_path, algo):
+    """memory.prior_bc (bc.py): the Q-filtered behaviour-cloning term, on a real scripted memory and real losses."""
+    sys.path.insert(0, str(RECIPE_DIR))
+    from bc import PRIOR_KEY, PriorBC
+
+    loss, batch = _push_loss_and_scripted_batch(tmp_path, algo)
     batch.set(PRIOR_KEY, torch.ones(64, dtype=torch.bool))
     demo = batch["action"]
 
@@ -407,27 +414,12 @@ def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_pat
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_crr_actor_loss_regresses_onto_the_better_stored_actions(tmp_path, algo):
     """optim.actor_update=crr (bc.CRRActorLoss): the actor's loss has no critic gradient, only filtered regression."""
-    from hydra import compose, initialize_config_dir
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from recipes.scripted.collect import main as collect
-    from torchrl_robotmem import ZarrStorage
-
     sys.path.insert(0, str(RECIPE_DIR))
-    import utils
     from bc import CRRActorLoss
 
-    torch.manual_seed(0)
-    prior = tmp_path / "scripted-push.zarr"
-    collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0"])
-    with initialize_config_dir(config_dir=str(RECIPE_DIR), version_base="1.3"):
-        cfg = compose("config", overrides=["env=push", f"algo={algo}", "network.hidden_sizes=[32,32]"])
-    train_env, eval_env = utils.make_environment(cfg)
-    model, _ = utils.make_agent(cfg, train_env, utils.GoalNormalizer())
-    loss = utils.make_loss_module(cfg, model)[0]
-    train_env.close()
-    eval_env.close()
-    batch = ZarrStorage(prior, read_only=True)[:64]
+    loss, batch = _push_loss_and_scripted_batch(tmp_path, algo)
     crr = CRRActorLoss(loss)
     out = crr(batch)
     assert 0.0 < out["crr_kept"].item() < 1.0 and out["loss_actor"].item() > 0
