@@ -116,7 +116,10 @@ class CRRActorLoss(PriorBC):
     that is wrong between them cannot pull it off the data (the TD3+BC anchor
     leaves an equilibrium offset proportional to the critics' action gradient:
     enough to undo a precise cloned policy, docs/results.md section 11). The
-    critics are trained by the algorithm's own loss, unchanged.
+    critics are trained by the algorithm's own loss, unchanged. Measured: it
+    did not keep the cloned FetchPush actor either (0.95 to 0.05-0.11 in 2500
+    frames, section 12): regression targets that are not the clone's own
+    actions move its weights past what its precision tolerates.
 
     Args:
         loss_module: the run's SAC / TD3 / DDPG loss.

@@ -448,8 +448,8 @@ def make_loss_module(cfg: DictConfig, model):
 def make_optimizer(cfg: DictConfig, loss_module):
     """One Adam per parameter group (actor, critic, and SAC's entropy), grouped.
 
-    The actor's learning rate is ``optim.actor_lr`` where set (a smaller one keeps a
-    cloned actor near its demonstrations under the critics' gradient), else ``optim.lr``.
+    The actor's learning rate is ``optim.actor_lr`` where set, else ``optim.lr`` (even
+    1e-5 did not keep a cloned FetchPush actor, docs/results.md section 12).
     """
     critic = loss_module.qvalue_network_params if hasattr(loss_module, "qvalue_network_params") \
         else loss_module.value_network_params
