@@ -51,6 +51,7 @@ from utils import (
     current_goals,
     evaluate,
     loss_keys,
+    mean_losses,
     make_agent,
     make_collector,
     make_environment,
@@ -65,6 +66,9 @@ from utils import (
     refresh_recall,
     run_progress,
 )
+
+
+_SKIPPED = torch.full((), float("nan"))  # an actor-side term on an update that did not train the actor
 
 
 @hydra.main(version_base="1.3", config_path="", config_name="config")
@@ -165,7 +169,7 @@ def main(cfg: DictConfig):  # noqa: F821
         extra = bc(batch) if bc is not None and "loss_actor" in used else {}
         loss_td = loss_module(batch)
         if crr is not None:  # optim.actor_update=crr: regression onto the better stored actions, no action gradient
-            regressed = crr(batch) if "loss_actor" in used else {"loss_actor": torch.zeros(()), "crr_kept": torch.zeros(())}
+            regressed = crr(batch) if "loss_actor" in used else {"loss_actor": torch.zeros(()), "crr_kept": _SKIPPED}
             loss_td.set("loss_actor", regressed["loss_actor"])
         total = sum(loss_td[k] for k in used)
         if extra:
@@ -179,8 +183,8 @@ def main(cfg: DictConfig):  # noqa: F821
         out = loss_td.select(*keys).detach()
         if crr is not None:
             out.set("crr_kept", regressed["crr_kept"].detach())
-        if bc is not None:  # the same keys every update (zeros on TD3's critic-only steps)
-            out.update({k: extra.get(k, torch.zeros(())).detach() for k in ("loss_bc", "bc_kept")})
+        if bc is not None:  # the same keys every update (NaN on critic-only steps: left out of the logged mean)
+            out.update({k: extra.get(k, _SKIPPED).detach() for k in ("loss_bc", "bc_kept")})
         return out
 
     # frames of this run so far: every row it added to its memory (a resumed run
@@ -284,7 +288,7 @@ def main(cfg: DictConfig):  # noqa: F821
             query = current_goals(collector, data) if goal_sampler is not None else None
             for i in range(n):
                 losses[i] = update(sample(query))
-            metrics.update({f"train/{k}": v.item() for k, v in losses.mean().items()})
+            metrics.update(mean_losses(losses))
             if algo == "SAC":
                 metrics["train/alpha"] = loss_module.log_alpha.exp().item()
         collector.update_policy_weights_()

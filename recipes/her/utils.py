@@ -473,6 +473,22 @@ def loss_keys(cfg: DictConfig) -> tuple[str, ...]:
     }[cfg.algo.name]
 
 
+def mean_losses(losses: TensorDictBase) -> dict[str, float]:
+    """``train/<key>`` means of a batch of update records, NaN entries left out.
+
+    Actor-side terms (``loss_bc``, ``bc_kept``, ``crr_kept``) are recorded as NaN on
+    the updates that do not train the actor (TD3's delayed steps, critic-only
+    pretraining), so their means are over the actor's updates alone; a key with
+    no value in the batch is not logged.
+    """
+    means = {}
+    for key, value in losses.items():
+        mean = value.float().nanmean()
+        if not torch.isnan(mean):
+            means[f"train/{key}"] = mean.item()
+    return means
+
+
 # ====================================================================
 # General utils
 # -------------
