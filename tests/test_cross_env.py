@@ -79,3 +79,19 @@ def test_cross_env_command_end_to_end(tmp_path):
         assert run_["frames"] == 200 and run_["memory_rows_after"] == 200
         assert [f for f, _ in run_["curve"]] == [0, 100, 200]  # continued, not restarted
     assert json.loads((out / "results.json").read_text())["config"]["learned_frames"] == 200
+    # learned_arms=clone: the actor cloned from the pooled memory's successful episodes, added beside the
+    # prior and scratch runs kept from before
+    cloned = run.main([
+        f"out={out}", f"workdir={tmp_path / 'mem'}", "learned_only=true", "learned_arms=clone",
+        "learned_frames=100", "learned_seeds=1", "learned_eval_episodes=1", "learned_eval_iter=100",
+        "learned_overrides=memory.prior_pretrain_bc=5;memory.pretrain_updates=5;optim.batch_size=16;"
+        "network.hidden_sizes=[16,16];replay_buffer.size=1000;logger.backend=",
+    ])
+    assert set(cloned["learned"]["runs"]) == {"prior", "scratch", "clone"}
+    (run_,) = cloned["learned"]["runs"]["clone"]
+    assert run_["env"] == "FetchSlide-v4" and run_["algo"] == "TD3" and run_["frames"] == 100
+    assert cloned["learned"]["runs"]["prior"][0]["frames"] == 200  # kept, not rerun
+    assert "cloned from the memory" in (out / "report.md").read_text()
+    with pytest.raises(ValueError, match="learned_arms must name some of prior, scratch, clone"):
+        run.main([f"out={out}", f"workdir={tmp_path / 'mem'}", "learned_only=true", "learned_arms=bc",
+                  "learned_frames=100"])

@@ -8,6 +8,7 @@ One command builds the memories, runs every arm on the same FetchSlide episodes
     python -m recipes.cross_env.run seeds=1 episodes=2 push_episodes=2 slide_episodes=2 \
         tune_episodes=2 speeds=0.8 out=/tmp/cross_env     # smoke run
     python -m recipes.cross_env.run learned_only=true learned_frames=60000 learned_jobs=2  # the learned arm alone, resumable
+    python -m recipes.cross_env.run learned_only=true learned_frames=60000 learned_arms=clone  # ... its clone runs
 
 Per seed (replicate) ``s`` one memory (a :class:`~torchrl_robotmem.ZarrStorage`)
 holds ``push_episodes`` noisy scripted FetchPush episodes and ``slide_episodes``
@@ -164,16 +165,29 @@ def make_arms(storage, baseline: StrikeParams, k: int) -> dict[str, ParamFn]:
     }
 
 
-def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, out: str,
+# the learned arm's runs: recipes/her overrides on top of env=slide (the clone arm is the recipe that met the
+# FetchPush and PickAndPlace goals at frame 0, docs/results.md sections 11-12)
+LEARNED_ARMS: dict[str, list[str]] = {
+    "prior": [],
+    "scratch": [],
+    "clone": ["algo=td3", "memory.prior_pretrain_bc=4000", "collector.init_random_frames=0",
+              "memory.freeze_normalizer=true", "optim.actor_update=crr"],
+}
+
+
+def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str,
                 eval_episodes: int = 100, eval_iter: int = 2500, overrides: list[str] | None = None,
-                jobs: int = 1, log=print) -> dict:
+                jobs: int = 1, arms: tuple[str, ...] = ("prior", "scratch"), log=print) -> dict:
     """FetchSlide SAC+HER (``recipes/her``) with ``memory`` as a read-only prior vs from scratch.
 
     Both arms run the same recipe, seeds and frame budget; the prior arm adds
     ``memory.prior=[memory]`` (sampled as half of every batch, rewards recomputed
-    for FetchSlide, hindsight relabelling on its rows too). Each run is a
-    subprocess writing its own memory under ``workdir/learned`` and its curve
-    (``summary.json``) under ``out/learned``. Runs are launched with
+    for FetchSlide, hindsight relabelling on its rows too). The optional
+    ``clone`` arm clones the memory's successful episodes into a TD3 actor
+    before the first frame and then trains it by critic-regularised regression
+    (:data:`LEARNED_ARMS`), with the memory as prior too. Each run is a
+    subprocess writing its own memory, hydra logs and curve (``summary.json``)
+    under ``workdir/learned``. Runs are launched with
     ``collector.resume=true``: the command run again continues runs that were
     stopped and keeps finished ones (``learned_only=true`` skips the scripted arms).
 
@@ -181,11 +195,12 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, ou
         memory: the pooled memory (FetchPush + FetchSlide scripted episodes).
         frames: new env frames per run; ``0`` skips the arm (hours on a CPU).
         seeds: training seeds per arm.
-        workdir / out: where the runs' memories / logs go.
+        workdir: where the runs' memories, hydra logs and ``summary.json`` go (resumable state).
         eval_episodes / eval_iter: deterministic evaluation episodes, every this many frames.
         overrides: extra hydra overrides for both arms (e.g. ``["collector.cpu_budget_s=3000"]``).
         jobs: runs at a time (each is one single-threaded process: ``2`` on a 2-core machine);
-            seed ``i``'s prior and scratch runs go first, so a cut-off arm stays paired.
+            seed ``i``'s runs of every arm go first, so a cut-off arm stays paired.
+        arms: which of :data:`LEARNED_ARMS` to run (``prior`` and ``scratch`` by default).
     """
     if frames <= 0 or memory is None:
         return {"status": "not run",
@@ -193,10 +208,13 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, ou
     train = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "her", "train.py")
     if jobs < 1:
         raise ValueError(f"learned_jobs must be >= 1, got {jobs}")
+    unknown = [a for a in arms if a not in LEARNED_ARMS]
+    if unknown or not arms:
+        raise ValueError(f"learned_arms must name some of {', '.join(LEARNED_ARMS)}, got {','.join(arms)!r}")
 
     def run_one(seed: int, arm: str) -> dict:
         name = f"{arm}-s{seed}"
-        run_dir = os.path.abspath(os.path.join(out, "learned", name))
+        run_dir = os.path.abspath(os.path.join(workdir, "learned", name))  # hydra logs, summary.json
         mem = os.path.abspath(os.path.join(workdir, "learned", f"{name}.zarr"))
         if not os.path.isdir(f"{mem}-agent"):  # nothing to resume: start this run afresh
             for p in (mem, f"{mem}-runs.jsonl"):
@@ -208,8 +226,8 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, ou
         cmd = [sys.executable, train, "env=slide", f"seed={seed}", f"memory.path={mem}",
                f"collector.total_frames={frames}", f"logger.eval_iter={eval_iter}",
                f"logger.eval_episodes={eval_episodes}", "logger.plot=false", f"hydra.run.dir={run_dir}",
-               "collector.resume=true", *(overrides or [])]
-        if arm == "prior":
+               "collector.resume=true", *LEARNED_ARMS[arm], *(overrides or [])]
+        if arm != "scratch":
             cmd.append(f"memory.prior=[{os.path.abspath(memory)}]")
         log(f"learned arm: {name}: {' '.join(cmd[1:])}")
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
@@ -219,14 +237,15 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str, ou
             f"frames ({summary['cpu_s']:.0f} CPU-s)")
         return summary
 
-    tasks = [(seed, arm) for seed in range(seeds) for arm in ("prior", "scratch")]
+    tasks = [(seed, arm) for seed in range(seeds) for arm in arms]
     with ThreadPoolExecutor(max_workers=jobs) as pool:  # threads only wait on the subprocesses
         summaries = list(pool.map(lambda t: run_one(*t), tasks))
-    runs: dict[str, list[dict]] = {"prior": [], "scratch": []}
+    runs: dict[str, list[dict]] = {arm: [] for arm in arms}
     for (_, arm), summary in zip(tasks, summaries):
         runs[arm].append(summary)
     final = {arm: [r["curve"][-1][1] for r in rs] for arm, rs in runs.items()}
-    return {"status": "run", "reason": f"{seeds} seeds x {frames} frames per arm, {eval_episodes}-episode evals",
+    return {"status": "run", "reason": f"{seeds} seeds x {frames} frames per arm ({', '.join(arms)}), "
+                                       f"{eval_episodes}-episode evals",
             "memory": os.path.abspath(memory), "runs": runs, "final": final,
             "mean_final": {arm: float(np.mean(v)) for arm, v in final.items()}}
 
@@ -241,11 +260,12 @@ def plot_learned(learned: dict, path: str) -> bool:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4))
-    for arm, color in (("prior", "#fd8d3c"), ("scratch", "#6baed6")):
-        for i, run in enumerate(learned["runs"][arm]):
+    styles = {"prior": ("#fd8d3c", "prior memory"), "scratch": ("#6baed6", "from scratch"),
+              "clone": ("#31a354", "cloned from the memory")}
+    for arm, (color, label) in styles.items():
+        for i, run in enumerate(learned["runs"].get(arm, [])):
             xs, ys = zip(*run["curve"])
-            ax.plot(xs, ys, color=color, alpha=0.8, label=f"{arm} memory" if arm == "prior" and i == 0
-                    else "from scratch" if i == 0 else None)
+            ax.plot(xs, ys, color=color, alpha=0.8, label=label if i == 0 else None)
     ax.set_xlabel("new env frames")
     ax.set_ylabel("FetchSlide eval success")
     ax.set_ylim(-0.02, 1.02)
@@ -353,15 +373,26 @@ def report_md(res: dict) -> str:
               f"Learned arm: {res['learned']['status']} ({res['learned']['reason']})."]
     learned = res["learned"]
     if learned.get("status") == "run":
-        lines += ["", "| learned arm, seed | prior memory: final success | from scratch | CPU-s (prior / scratch) |",
-                  "|---|---|---|---|"]
-        for i, (p, c) in enumerate(zip(learned["runs"]["prior"], learned["runs"]["scratch"])):
-            lines.append(f"| {i} | {p['curve'][-1][1]:.2f} | {c['curve'][-1][1]:.2f} | "
-                         f"{p['cpu_s']:.0f} / {c['cpu_s']:.0f} |")
+        names = {"prior": "prior memory", "scratch": "from scratch", "clone": "cloned from the memory"}
+        arms = [a for a in names if a in learned["runs"]]
+        lines += ["", "| learned arm, seed | " + " | ".join(
+            f"{names[a]}: success at frame 0 / final (frames, CPU-s)" for a in arms) + " |",
+            "|---" * (len(arms) + 1) + "|"]
+        for i in range(max(len(learned["runs"][a]) for a in arms)):
+            cells = []
+            for a in arms:
+                r = learned["runs"][a][i] if i < len(learned["runs"][a]) else None
+                cells.append("" if r is None else f"{r['curve'][0][1]:.2f} / {r['curve'][-1][1]:.2f} "
+                             f"({r['frames']}, {r['cpu_s']:.0f})")
+            lines.append(f"| {i} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
 # -- main ----------------------------------------------------------------------------
+
+
+def _learned_arms(args: argparse.Namespace) -> tuple[str, ...]:
+    return tuple(a.strip() for a in str(args.learned_arms).split(",") if a.strip())
 
 
 def _parse(argv):
@@ -381,6 +412,8 @@ def _parse(argv):
     p.add_argument("--learned_jobs", type=int, default=1, help="learned-arm runs at a time (2 on a 2-core machine)")
     p.add_argument("--learned_eval_episodes", type=int, default=100)
     p.add_argument("--learned_eval_iter", type=int, default=2500)
+    p.add_argument("--learned_arms", default="prior,scratch",
+                   help=f"comma-separated learned-arm runs per seed, of {','.join(LEARNED_ARMS)}")
     p.add_argument("--learned_overrides", default="", help="extra hydra overrides for both arms, separated by ';'")
     p.add_argument("--learned_only", type=lambda v: str(v).lower() in ("1", "true", "yes"), default=False,
                    help="true: only run (or continue) the learned arm, next to the scripted arms of out/results.json")
@@ -432,10 +465,10 @@ def main(argv: list[str] | None = None) -> dict:
         "outcomes": {a: [o.astype(int).tolist() for o in v] for a, v in outcomes.items()},
         "learned": learned_arm(
             os.path.join(args.workdir, "seed0.zarr") if args.seeds else None,
-            frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir, out=args.out,
+            frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir,
             eval_episodes=args.learned_eval_episodes, eval_iter=args.learned_eval_iter,
             overrides=[o for o in str(args.learned_overrides).split(";") if o], jobs=args.learned_jobs,
-            log=log),
+            arms=_learned_arms(args), log=log),
         "seconds": round(time.time() - t0, 1),
     }
     return write_results(res, args.out)
@@ -475,10 +508,17 @@ def learned_only(args: argparse.Namespace, log) -> dict:
         cfg = res["config"]
         build_memory(memory, 0, cfg["push_episodes"], cfg["slide_episodes"], StrikeParams(**res["baseline"]), log)
     t0 = time.time()
+    before = res.get("learned", {})
     res["learned"] = learned_arm(
-        memory, frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir, out=args.out,
+        memory, frames=args.learned_frames, seeds=args.learned_seeds, workdir=args.workdir,
         eval_episodes=args.learned_eval_episodes, eval_iter=args.learned_eval_iter,
-        overrides=[o for o in str(args.learned_overrides).split(";") if o], jobs=args.learned_jobs, log=log)
+        overrides=[o for o in str(args.learned_overrides).split(";") if o], jobs=args.learned_jobs,
+        arms=_learned_arms(args), log=log)
+    if before.get("status") == "run":  # arms run earlier and not named this time stay in the results
+        for arm, runs in before["runs"].items():
+            res["learned"]["runs"].setdefault(arm, runs)
+            res["learned"]["final"].setdefault(arm, before["final"][arm])
+            res["learned"]["mean_final"].setdefault(arm, before["mean_final"][arm])
     res["config"].update({k: v for k, v in vars(args).items() if k.startswith("learned")})
     res["learned_seconds"] = round(time.time() - t0, 1)
     return write_results(res, args.out)
