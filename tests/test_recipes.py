@@ -448,6 +448,56 @@ def test_crr_actor_loss_regresses_onto_the_better_stored_actions(tmp_path, algo)
     assert proc.returncode != 0 and "optim.actor_update must be q_gradient or crr" in proc.stderr
 
 
+def test_clone_anchor_keeps_the_actor_near_the_clone(tmp_path):
+    """memory.clone_anchor (bc.CloneAnchor): a trust region around the cloned actor's own outputs."""
+    sys.path.insert(0, str(RECIPE_DIR))
+    from bc import CloneAnchor
+
+    loss, batch = _push_loss_and_scripted_batch(tmp_path, "td3")
+    with pytest.raises(ValueError, match="clone_anchor must be > 0"):
+        CloneAnchor(loss, weight=0.0)
+    params = list(loss.actor_network_params.values(True, True))
+    clone = [p.detach().clone() for p in params]
+    anchor = CloneAnchor(loss, weight=100.0)
+    anchor.reset()
+    out = anchor(batch)
+    assert out["loss_anchor"].item() == 0.0 and out["anchor_shift"].item() == 0.0  # at the clone itself
+    assert not [n for n, _ in anchor.named_parameters()]  # the frozen copy is not trained by anyone
+
+    def shift_after_actor_updates(with_anchor: bool) -> float:
+        """100 Adam steps of TD3's own actor loss (the critics' action gradient), from the clone."""
+        with torch.no_grad():
+            for p, c in zip(params, clone):
+                p.copy_(c)
+        opt = torch.optim.Adam(params, lr=1e-3)
+        for _ in range(100):
+            opt.zero_grad()
+            total = loss(batch)["loss_actor"]
+            if with_anchor:
+                total = total + anchor(batch)["loss_anchor"]
+            total.backward()
+            opt.step()
+        return anchor(batch)["anchor_shift"].item()
+
+    free, anchored = shift_after_actor_updates(False), shift_after_actor_updates(True)
+    assert free > 0.05 and anchored < free / 3, (free, anchored)
+    # in the recipe: needs the clone, logs the shift, and the copy is saved with the agent
+    prior = tmp_path / "scripted-push.zarr"
+    s = run_recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'mem.zarr'}", f"memory.prior=[{prior}]",
+                   "memory.prior_pretrain_bc=5", "memory.clone_anchor=10", "memory.freeze_normalizer=true")
+    assert s["updates"] > 0
+    logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/anchor_shift.csv")).read_text()
+    shifts = [float(line.split(",")[1]) for line in logged.splitlines() if line[:1].isdigit()]
+    assert len(shifts) == 2 and all(v >= 0 for v in shifts)
+    assert any(p.name.endswith("clone_anchor") for p in (tmp_path / "mem.zarr-agent" / "components").iterdir())
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "memory.clone_anchor=10",
+         f"memory.path={tmp_path / 'bad.zarr'}", f"hydra.run.dir={tmp_path / 'bad'}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode != 0 and "set memory.prior_pretrain_bc=N" in proc.stderr
+
+
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
     """memory.prior_pretrain_bc (bc.pretrain_actor): the actor imitates the scripted memory before any RL update."""

@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import torch
 import tqdm
-from tensordict import TensorDictBase
+from tensordict import TensorDictBase, TensorDictParams
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
-__all__ = ["PRIOR_KEY", "CRRActorLoss", "PriorBC", "load_demos", "pretrain_actor"]
+__all__ = ["PRIOR_KEY", "CRRActorLoss", "CloneAnchor", "PriorBC", "load_demos", "pretrain_actor"]
 
 #: bool ``[batch]``: True for the rows a batch drew from a prior memory.
 PRIOR_KEY = "from_prior"
@@ -136,6 +136,65 @@ class CRRActorLoss(PriorBC):
     def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         mse, keep, _ = self._filtered_mse(batch)
         return {"loss_actor": (keep * mse).sum() / batch.shape[0], "crr_kept": keep.mean()}
+
+
+class CloneAnchor(torch.nn.Module):
+    """A trust region in action space around the cloned actor, on every state of every batch.
+
+    ``memory.clone_anchor=w`` keeps a frozen copy ``pi_0`` of the actor as it is
+    right after ``memory.prior_pretrain_bc`` (call :meth:`reset` then) and adds
+    to each actor update, over all rows of the batch (the run's own states and
+    the prior's, with their relabelled goals)::
+
+        loss_anchor = w * mean|Q(s, pi(s))| * mean_batch(mean_dims((pi(s) - pi_0(s))^2))
+
+    Unlike the BC terms it anchors the actor's *outputs* to the clone's own on
+    the states the run visits, not to stored actions (which are not the
+    clone's: noisy, or aimed at other goals): the algorithm's actor loss can
+    only move the actions by about ``grad_a Q / (2 w mean|Q|)``. A weight-noise
+    test put the FetchPush clone's tolerance near a mean action change of 0.01
+    (docs/results.md section 12); ``train/anchor_shift`` logs the mean absolute
+    change. The copy is saved in the run's checkpoint, so a resumed run keeps
+    the same anchor.
+
+    Args:
+        loss_module: the run's SAC / TD3 / DDPG loss; the actor's live parameters are anchored.
+        weight (float): ``w`` above, in units of the batch's mean ``|Q|`` (``> 0``).
+
+    Example:
+        >>> anchor = CloneAnchor(loss_module, weight=10.0)
+        >>> pretrain_actor(loss_module, [storage], steps=4000)
+        >>> anchor.reset()                   # pi_0: the clone
+        >>> out = anchor(batch)              # {"loss_anchor": ..., "anchor_shift": ...}
+        >>> (loss_td["loss_actor"] + out["loss_anchor"]).backward()
+    """
+
+    def __init__(self, loss_module: LossModule, weight: float) -> None:
+        super().__init__()
+        if weight <= 0:
+            raise ValueError(f"memory.clone_anchor must be > 0 (0 disables it), got {weight}.")
+        self.weight = float(weight)
+        self._q = PriorBC(loss_module, weight=1.0, q_filter=False)._q  # min_i Q_i(s, a), no gradient
+        self._loss_module = [loss_module]  # a list: not a submodule, its parameters are not saved twice
+        self.anchor = TensorDictParams(loss_module.actor_network_params.data.clone(), no_convert=True)
+
+    def reset(self) -> None:
+        """Take the actor's current parameters (the clone) as ``pi_0``."""
+        self.anchor.data.update_(self._loss_module[0].actor_network_params.data)
+
+    def _actions(self, params: TensorDictBase, rows: TensorDictBase) -> torch.Tensor:
+        loss_module = self._loss_module[0]
+        actor = loss_module.actor_network
+        with set_exploration_type(ExplorationType.DETERMINISTIC), params.to_module(actor):
+            return actor(rows.select(*actor.in_keys, strict=False)).get(getattr(loss_module.tensor_keys, "action", "action"))
+
+    def forward(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        pi = self._actions(self._loss_module[0].actor_network_params, batch)
+        with torch.no_grad():
+            pi_0 = self._actions(self.anchor, batch)
+        (q_pi,) = self._q(batch, pi.detach())
+        loss = self.weight * q_pi.abs().mean() * (pi - pi_0).pow(2).mean()
+        return {"loss_anchor": loss, "anchor_shift": (pi - pi_0).detach().abs().mean()}
 
 
 def pretrain_actor(

@@ -81,6 +81,14 @@ def _runs() -> dict[str, list[str]]:
         # ... with a quarter of TD3's exploration noise (0.05): the regression targets of the run's own rows are
         # the clone's actions plus that noise, which the actor fits
         runs[f"crrlow-push-s{seed}"] = [*runs[f"crr-push-s{seed}"], "algo.exploration_noise=0.05"]
+        # a trust region around the clone's own outputs on every batch state (bc.CloneAnchor), with TD3's own
+        # actor loss: the actions move by about grad_a Q / (2 w mean|Q|); to 20k frames without the 0.9 stop
+        runs[f"anchor-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]",
+                                        "memory.prior_pretrain_bc=4000", "collector.init_random_frames=0",
+                                        "memory.freeze_normalizer=true", "memory.clone_anchor=10",
+                                        "collector.total_frames=20000", "logger.target_success=null"]
+        runs[f"anchor100-push-s{seed}"] = [o.replace("clone_anchor=10", "clone_anchor=100")
+                                           for o in runs[f"anchor-push-s{seed}"]]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]

@@ -36,7 +36,7 @@ import hydra
 import numpy as np
 import torch
 import tqdm
-from bc import CRRActorLoss, PriorBC, load_demos, pretrain_actor
+from bc import CloneAnchor, CRRActorLoss, PriorBC, load_demos, pretrain_actor
 from compare import first_reach
 from hydra.utils import to_absolute_path
 from prior import TRANSITION_KEYS, PriorMix, make_prior_buffers
@@ -117,6 +117,13 @@ def main(cfg: DictConfig):  # noqa: F821
     loss_module, target_net_updater = make_loss_module(cfg, model)
     optimizer = make_optimizer(cfg, loss_module)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
+    anchor = None  # memory.clone_anchor: the cloned actor's outputs, kept near on every batch (saved with the agent)
+    if cfg.memory.get("clone_anchor", 0):
+        if not cfg.memory.get("prior_pretrain_bc", 0):
+            raise ValueError("memory.clone_anchor keeps the actor near the one cloned by memory.prior_pretrain_bc: "
+                             "set memory.prior_pretrain_bc=N (and memory.prior=[path, ...]) too.")
+        anchor = CloneAnchor(loss_module, cfg.memory.clone_anchor)
+        checkpoint.register("clone_anchor", anchor)
     progress = run_progress(cfg, checkpoint_path, remembered)  # collector.resume: where the run stopped
     freeze_stats = bool(cfg.memory.get("freeze_normalizer", False))  # memory.freeze_normalizer: the start's statistics
     resumed = (bool(cfg.memory.resume_agent) or progress is not None) and Checkpoint.is_checkpoint(checkpoint_path)
@@ -174,6 +181,9 @@ def main(cfg: DictConfig):  # noqa: F821
         total = sum(loss_td[k] for k in used)
         if extra:
             total = total + extra["loss_bc"]
+        anchored = anchor(batch) if anchor is not None and "loss_actor" in used else {}
+        if anchored:
+            total = total + anchored["loss_anchor"]
         total.backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
@@ -185,6 +195,8 @@ def main(cfg: DictConfig):  # noqa: F821
             out.set("crr_kept", regressed["crr_kept"].detach())
         if bc is not None:  # the same keys every update (NaN on critic-only steps: left out of the logged mean)
             out.update({k: extra.get(k, _SKIPPED).detach() for k in ("loss_bc", "bc_kept")})
+        if anchor is not None:
+            out.update({k: anchored.get(k, _SKIPPED).detach() for k in ("loss_anchor", "anchor_shift")})
         return out
 
     # frames of this run so far: every row it added to its memory (a resumed run
@@ -240,6 +252,8 @@ def main(cfg: DictConfig):  # noqa: F821
         bc_mse = pretrain_actor(loss_module, [b.storage for b in priors], int(cfg.memory.prior_pretrain_bc),
                                 batch_size=cfg.optim.batch_size, lr=cfg.optim.lr, seed=cfg.seed, demos=demos)
         print(f"cloned the prior's actions into the actor: {cfg.memory.prior_pretrain_bc} steps, mse {bc_mse:.4f}")
+        if anchor is not None:
+            anchor.reset()
         critic_only = True  # the pretraining updates below evaluate the cloned actor, they do not move it
     # Fresh networks on a memory that already holds transitions: learn from it first
     if (remembered or mix is not None) and not resumed and cfg.memory.pretrain_updates:
