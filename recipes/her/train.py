@@ -51,7 +51,6 @@ from utils import (
     current_goals,
     evaluate,
     loss_keys,
-    mean_losses,
     make_agent,
     make_collector,
     make_environment,
@@ -60,13 +59,13 @@ from utils import (
     make_replay_buffer,
     make_sampler,
     make_storage,
+    mean_losses,
     plot_success,
     prior_ratio,
     read_history,
     refresh_recall,
     run_progress,
 )
-
 
 _SKIPPED = torch.full((), float("nan"))  # an actor-side term on an update that did not train the actor
 
