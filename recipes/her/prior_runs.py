@@ -1,4 +1,4 @@
-"""The prior-memory experiments of docs/results.md (sections 8-12), as one resumable queue.
+"""The prior-memory experiments of docs/results.md (sections 8-13), as one resumable queue.
 
 Every run is ``recipes/her/train.py`` with 60k new env frames, 100 deterministic
 evaluation episodes every 2500 frames and ``collector.resume=true``: launching
