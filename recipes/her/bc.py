@@ -86,12 +86,16 @@ class PriorBC:
         loss = self.weight * q_pi.abs().mean() * (keep * mse).sum() / prior.shape[0]
         return {"loss_bc": loss, "bc_kept": keep.mean()}
 
+    def _pi(self, rows: TensorDictBase, params: TensorDictBase | None = None) -> torch.Tensor:
+        """The deterministic action of the actor with ``params`` (default: its live parameters)."""
+        actor = self.loss_module.actor_network
+        params = self.loss_module.actor_network_params if params is None else params
+        with set_exploration_type(ExplorationType.DETERMINISTIC), params.to_module(actor):
+            return actor(rows.select(*actor.in_keys, strict=False)).get(self._action_key)
+
     def _filtered_mse(self, rows: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per row: squared distance of the actor's deterministic action to the stored one, the Q filter, Q(s, pi(s))."""
-        actor = self.loss_module.actor_network
-        with set_exploration_type(ExplorationType.DETERMINISTIC), \
-                self.loss_module.actor_network_params.to_module(actor):
-            pi = actor(rows.select(*actor.in_keys, strict=False)).get(self._action_key)
+        pi = self._pi(rows)
         stored = rows.get(self._action_key)
         if self.q_filter:
             q_pi, q_stored = self._q(rows, pi.detach(), stored)
@@ -174,25 +178,19 @@ class CloneAnchor(torch.nn.Module):
         if weight <= 0:
             raise ValueError(f"memory.clone_anchor must be > 0 (0 disables it), got {weight}.")
         self.weight = float(weight)
-        self._q = PriorBC(loss_module, weight=1.0, q_filter=False)._q  # min_i Q_i(s, a), no gradient
-        self._loss_module = [loss_module]  # a list: not a submodule, its parameters are not saved twice
+        self._bc = PriorBC(loss_module, weight=1.0, q_filter=False)  # its actor and critic passes (not a module: not saved)
         self.anchor = TensorDictParams(loss_module.actor_network_params.data.clone(), no_convert=True)
 
     def reset(self) -> None:
         """Take the actor's current parameters (the clone) as ``pi_0``."""
-        self.anchor.data.update_(self._loss_module[0].actor_network_params.data)
-
-    def _actions(self, params: TensorDictBase, rows: TensorDictBase) -> torch.Tensor:
-        loss_module = self._loss_module[0]
-        actor = loss_module.actor_network
-        with set_exploration_type(ExplorationType.DETERMINISTIC), params.to_module(actor):
-            return actor(rows.select(*actor.in_keys, strict=False)).get(getattr(loss_module.tensor_keys, "action", "action"))
+        self.anchor.data.update_(self._bc.loss_module.actor_network_params.data)
 
     def forward(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        pi = self._actions(self._loss_module[0].actor_network_params, batch)
+        bc = self._bc
+        pi = bc._pi(batch)
         with torch.no_grad():
-            pi_0 = self._actions(self.anchor, batch)
-        (q_pi,) = self._q(batch, pi.detach())
+            pi_0 = bc._pi(batch, self.anchor)
+        (q_pi,) = bc._q(batch, pi.detach())
         loss = self.weight * q_pi.abs().mean() * (pi - pi_0).pow(2).mean()
         return {"loss_anchor": loss, "anchor_shift": (pi - pi_0).detach().abs().mean()}
 
