@@ -57,6 +57,17 @@ def test_fetch_reach_runs(tmp_path, algo):
     assert (scalars / "eval" / "success_rate.csv").read_text().splitlines()[-1].startswith("50,")
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the refusal on a machine without CUDA (tests/test_cuda.py runs it)")
+def test_device_cuda_without_a_gpu_is_refused_before_anything_is_written(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "device=cuda", f"memory.path={tmp_path / 'm.zarr'}",
+         f"hydra.run.dir={tmp_path / 'out'}"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode != 0 and "torch sees no CUDA device" in proc.stderr and "device=cpu" in proc.stderr
+    assert not (tmp_path / "m.zarr").exists()
+
+
 def test_shadow_hand_runs(tmp_path):
     s = run_recipe(tmp_path, "env=hand_reach", f"memory.path={tmp_path / 'hand.zarr'}")
     assert s["env"] == "HandReach-v3" and s["memory_rows_after"] == 50

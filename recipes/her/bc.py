@@ -54,6 +54,7 @@ class PriorBC:
         self.loss_module, self.weight, self.q_filter = loss_module, float(weight), bool(q_filter)
         self.demos = demos  # set: imitate these rows (original goals, see load_demos) instead of the batch's prior rows
         self._action_key = getattr(loss_module.tensor_keys, "action", "action")  # DDPG's keys name none
+        self._device = _device(loss_module)
         if hasattr(loss_module, "qvalue_network"):  # SAC, TD3: stacked twin critics
             self._critic, self._critic_params = loss_module.qvalue_network, "qvalue_network_params"
         else:  # DDPG: one critic
@@ -76,7 +77,7 @@ class PriorBC:
     def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         mask = batch.get(PRIOR_KEY, None)
         if not self.weight or mask is None or not mask.any():  # nothing to imitate in this batch
-            zero = torch.zeros(())
+            zero = torch.zeros((), device=self._device)
             return {"loss_bc": zero, "bc_kept": zero}
         if self.demos is not None:  # as many rows as the batch's prior share, with their original goals
             prior = self.demos[torch.randint(self.demos.shape[0], (int(mask.sum()),))]
@@ -276,4 +277,9 @@ def load_demos(loss_module: LossModule, storages: list, success_only: bool = Tru
     data = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
     if not data.shape[0]:
         raise ValueError("no prior rows to imitate (no successful episodes in memory.prior?).")
-    return data
+    return data.to(_device(loss_module))  # where the actor trains (device=cuda)
+
+
+def _device(loss_module: LossModule) -> torch.device:
+    """The device of the loss module's (actor's) parameters."""
+    return next(iter(loss_module.actor_network_params.values(True, True))).device

@@ -103,6 +103,13 @@ def _runs() -> dict[str, list[str]]:
         runs[f"clonenoisy-pnp-s{seed}"] = [*clone, f"memory.prior=[{PNP_PRIOR}]"]
         # (a probe: the Push clone's success on PickAndPlace at frame 0, and 2500 frames of RL after it)
         runs[f"clonepush-pnp-s{seed}"] = [*clone, f"memory.prior=[{PUSH_PRIOR_CLEAN}]", "collector.total_frames=2500"]
+        # the FetchPush trust region (anchor100-push) on PickAndPlace: its own default-parameter memory, and
+        # FetchPush's (cross-task); to 10k frames without the 0.9 stop
+        anchor = ["env=pick_and_place", "algo=td3", f"seed={seed}", "memory.prior_pretrain_bc=4000",
+                  "collector.init_random_frames=0", "memory.freeze_normalizer=true", "memory.clone_anchor=100",
+                  "collector.total_frames=10000", "logger.target_success=null"]
+        runs[f"anchor100-pnp-s{seed}"] = [*anchor, f"memory.prior=[{PNP_PRIOR_CLEAN}]"]
+        runs[f"anchor100push-pnp-s{seed}"] = [*anchor, f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
     return runs
 
 

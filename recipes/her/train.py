@@ -65,9 +65,8 @@ from utils import (
     read_history,
     refresh_recall,
     run_progress,
+    train_device,
 )
-
-_SKIPPED = torch.full((), float("nan"))  # an actor-side term on an update that did not train the actor
 
 
 @hydra.main(version_base="1.3", config_path="", config_name="config")
@@ -77,6 +76,7 @@ def main(cfg: DictConfig):  # noqa: F821
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     algo = cfg.algo.name
+    device = train_device(cfg)  # networks and updates; envs, memory and collected data stay on the CPU
     # hydra has already moved into outputs/<date>/<time>: resolve against the launch dir
     memory_path = to_absolute_path(cfg.memory.path)
     checkpoint_path = to_absolute_path(cfg.memory.checkpoint)
@@ -111,7 +111,7 @@ def main(cfg: DictConfig):  # noqa: F821
         mix.ratio = prior_ratio(cfg, 0)  # raises on a ratio or schedule end outside [0, 1]
 
     # Create agent, loss, optimiser
-    normalizer = GoalNormalizer()
+    normalizer = GoalNormalizer(device=device)
     model, exploration_policy = make_agent(cfg, train_env, normalizer)
     loss_module, target_net_updater = make_loss_module(cfg, model)
     optimizer = make_optimizer(cfg, loss_module)
@@ -162,6 +162,7 @@ def main(cfg: DictConfig):  # noqa: F821
         raise ValueError(f"optim.actor_update must be q_gradient or crr, got {actor_update!r}.")
     crr = CRRActorLoss(loss_module) if actor_update == "crr" else None
     critic_only = False  # pretraining the critics of a cloned actor (memory.prior_pretrain_bc)
+    skipped = torch.full((), float("nan"), device=device)  # an actor-side term on an update that did not train the actor
 
     def update(batch):
         nonlocal num_updates
@@ -175,7 +176,7 @@ def main(cfg: DictConfig):  # noqa: F821
         extra = bc(batch) if bc is not None and "loss_actor" in used else {}
         loss_td = loss_module(batch)
         if crr is not None:  # optim.actor_update=crr: regression onto the better stored actions, no action gradient
-            regressed = crr(batch) if "loss_actor" in used else {"loss_actor": torch.zeros(()), "crr_kept": _SKIPPED}
+            regressed = crr(batch) if "loss_actor" in used else {"loss_actor": torch.zeros((), device=device), "crr_kept": skipped}
             loss_td.set("loss_actor", regressed["loss_actor"])
         total = sum(loss_td[k] for k in used)
         if extra:
@@ -193,9 +194,9 @@ def main(cfg: DictConfig):  # noqa: F821
         if crr is not None:
             out.set("crr_kept", regressed["crr_kept"].detach())
         if bc is not None:  # the same keys every update (NaN on critic-only steps: left out of the logged mean)
-            out.update({k: extra.get(k, _SKIPPED).detach() for k in ("loss_bc", "bc_kept")})
+            out.update({k: extra.get(k, skipped).detach() for k in ("loss_bc", "bc_kept")})
         if anchor is not None:
-            out.update({k: anchored.get(k, _SKIPPED).detach() for k in ("loss_anchor", "anchor_shift")})
+            out.update({k: anchored.get(k, skipped).detach() for k in ("loss_anchor", "anchor_shift")})
         return out
 
     # frames of this run so far: every row it added to its memory (a resumed run
@@ -240,11 +241,13 @@ def main(cfg: DictConfig):  # noqa: F821
 
     def sample(query=None):
         if mix is not None:
-            return mix.sample(cfg.optim.batch_size, query)
-        if query is not None:
+            batch = mix.sample(cfg.optim.batch_size, query)
+        elif query is not None:
             with goal_sampler.query(query):
-                return replay_buffer.sample()
-        return replay_buffer.sample()
+                batch = replay_buffer.sample()
+        else:
+            batch = replay_buffer.sample()
+        return batch if device.type == "cpu" else batch.to(device, non_blocking=True)
 
     # Fresh networks and a prior memory: clone its actions into the actor first
     if mix is not None and not resumed and cfg.memory.get("prior_pretrain_bc", 0):

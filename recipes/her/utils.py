@@ -154,6 +154,19 @@ def make_environment(cfg: DictConfig, memory=None):
     return train_env, eval_env
 
 
+def train_device(cfg: DictConfig) -> torch.device:
+    """``device``: where the networks live and the updates run (envs and memory stay on the CPU).
+
+    ``cuda`` on a machine without one is refused with what to set, not silently
+    run on the CPU (CPU-seconds measured on a GPU run are not comparable).
+    """
+    device = torch.device(str(cfg.get("device") or "cpu"))
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device={cfg.device}: torch sees no CUDA device here "
+                           f"(torch {torch.__version__}, a CPU-only build?). Run with device=cpu.")
+    return device
+
+
 def make_collector(
     cfg: DictConfig, train_env, policy, init_random_frames: int,
     total_frames: int | None = None, seed: int | None = None,
@@ -165,7 +178,9 @@ def make_collector(
         frames_per_batch=cfg.collector.frames_per_batch,
         total_frames=cfg.collector.total_frames if total_frames is None else total_frames,
         init_random_frames=init_random_frames,
-        device=cfg.collector.device,
+        policy_device=train_device(cfg),  # the actor where it trains; envs and collected data on the CPU
+        env_device="cpu",
+        storing_device="cpu",
     )
     collector.set_seed(cfg.seed if seed is None else seed)
     return collector
@@ -234,7 +249,7 @@ def eval_rollout(cfg: DictConfig, eval_env, actor) -> TensorDictBase:
     eval_env.set_seed(cfg.seed + 10_000)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = eval_env.rollout(
-            cfg.env.max_episode_steps, actor, break_when_any_done=False
+            cfg.env.max_episode_steps, actor, break_when_any_done=False, auto_cast_to_device=True
         )
     return rollout.reshape(-1, rollout.shape[-1])
 
@@ -266,12 +281,13 @@ class GoalNormalizer:
     Goals are normalised with the statistics of desired and achieved goals.
     """
 
-    def __init__(self, eps: float = 1e-2, clip: float = 5.0):
+    def __init__(self, eps: float = 1e-2, clip: float = 5.0, device: torch.device | str = "cpu"):
         self.eps, self.clip = eps, clip
+        self.device = torch.device(device)  # of the mean and std the networks read; the sums stay on the CPU
         self.stats: dict[str, list[torch.Tensor]] = {}  # name -> [count, sum, sum of squares]
 
     def _accumulate(self, name: str, x: torch.Tensor) -> None:
-        x = x.reshape(-1, x.shape[-1]).double()
+        x = x.reshape(-1, x.shape[-1]).double().cpu()
         new = [torch.tensor(float(x.shape[0]), dtype=torch.float64), x.sum(0), x.pow(2).sum(0)]
         old = self.stats.get(name)
         self.stats[name] = new if old is None else [a + b for a, b in zip(old, new)]
@@ -281,7 +297,7 @@ class GoalNormalizer:
         count, total, squares = self.stats[name]
         mean = total / count
         std = (squares / count - mean.pow(2)).clamp_min(0).sqrt().clamp_min(self.eps)
-        setattr(self, f"_{name}", (mean.float(), std.float()))
+        setattr(self, f"_{name}", (mean.float().to(self.device), std.float().to(self.device)))
 
     def update(self, data: TensorDictBase) -> None:
         self._accumulate("observation", data["observation"])
@@ -333,9 +349,10 @@ def agent_inputs(cfg: DictConfig) -> list[str]:
 
 
 def make_agent(cfg: DictConfig, env, normalizer: GoalNormalizer):
-    """Actor and critic for ``cfg.algo.name``; returns ``(model, exploration_policy)``."""
+    """Actor and critic for ``cfg.algo.name`` on ``train_device(cfg)``; returns ``(model, exploration_policy)``."""
     in_keys = agent_inputs(cfg)
-    action_spec = env.action_spec_unbatched
+    device = train_device(cfg)
+    action_spec = env.action_spec_unbatched.to(device)
     n_act = action_spec.shape[-1]
     mlp = dict(num_cells=list(cfg.network.hidden_sizes), activation_class=_activation(cfg))
     algo = cfg.algo.name
@@ -379,9 +396,9 @@ def make_agent(cfg: DictConfig, env, normalizer: GoalNormalizer):
     qvalue = ValueOperator(
         GoalMLP(["action", *in_keys], normalizer, out_features=1, **critic_mlp), in_keys=["action", *in_keys]
     )
-    model = nn.ModuleList([actor, qvalue])
+    model = nn.ModuleList([actor, qvalue]).to(device)
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-        td = env.fake_tensordict().reshape(-1)[:1]
+        td = env.fake_tensordict().reshape(-1)[:1].to(device)
         for net in model:
             net(td)
 
@@ -442,6 +459,7 @@ def make_loss_module(cfg: DictConfig, model):
             delay_value=True,
         )
     loss.make_value_estimator(gamma=cfg.optim.gamma)
+    loss = loss.to(train_device(cfg))  # SAC's log_alpha and target entropy with the networks
     return loss, SoftUpdate(loss, eps=cfg.optim.target_update_polyak)
 
 
