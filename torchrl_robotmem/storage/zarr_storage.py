@@ -549,7 +549,7 @@ class ZarrStorage(LazyTensorStorage):
         n = len(self)
         if n == 0 or _DONE_KEY not in self._views.keys(True, True) or "episode" not in self._schema:
             return
-        flat = self._flat_columns(("run", "episode", _DONE_KEY), n)
+        flat = {k: v.cpu() for k, v in self._flat_columns(("run", "episode", _DONE_KEY), n).items()}
         done = flat[_DONE_KEY].reshape(n, -1).any(-1)
         cursor = self._writer_cursor * self._inner_numel
         rows = open_episode_ends(flat["run"], flat["episode"], done, cursor=cursor, full=self._is_full)
@@ -1100,7 +1100,7 @@ class ZarrStorage(LazyTensorStorage):
         lo = c * self._chunk_rows
         hi = min(lo + self._chunk_rows, self._max_dim0)
         valid = max(0, min(hi, self._len_along_dim0) - lo)
-        packed = self._packed[lo:hi].clone()
+        packed = self._packed[lo:hi].to("cpu", copy=True)  # a CUDA mirror (device="cuda") is written from host memory
         if valid < hi - lo:
             packed[valid:] = 0  # rows past len reach the disk as zeros
         return packed, self._layout
