@@ -341,6 +341,22 @@ def test_prior_ratio_schedule():
     assert [round(prior_ratio(cfg, f), 6) for f in (0, 500, 1000, 5000)] == [0.5, 0.3, 0.1, 0.1]
 
 
+def test_clone_anchor_weight_schedule():
+    """memory.clone_anchor_final: geometric from clone_anchor, so the trust region widens by a constant factor."""
+    from omegaconf import OmegaConf
+
+    sys.path.insert(0, str(RECIPE_DIR))
+    from utils import clone_anchor_weight
+
+    cfg = OmegaConf.create({"memory": {"clone_anchor": 100.0}})
+    assert clone_anchor_weight(cfg, 0) == clone_anchor_weight(cfg, 10**6) == 100.0
+    cfg.memory.clone_anchor_final, cfg.memory.clone_anchor_anneal_frames = 1.0, 1000
+    assert [round(clone_anchor_weight(cfg, f), 6) for f in (0, 500, 1000, 5000)] == [100.0, 10.0, 1.0, 1.0]
+    cfg.memory.clone_anchor_final = 0.0
+    with pytest.raises(ValueError, match="clone_anchor_final must be > 0"):
+        clone_anchor_weight(cfg, 0)
+
+
 def test_prior_runs_queue_lists_resumable_commands(tmp_path, capsys):
     sys.path.insert(0, str(RECIPE_DIR))
     import prior_runs
@@ -495,11 +511,15 @@ def test_clone_anchor_keeps_the_actor_near_the_clone(tmp_path):
     # in the recipe: needs the clone, logs the shift, and the copy is saved with the agent
     prior = tmp_path / "scripted-push.zarr"
     s = run_recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'mem.zarr'}", f"memory.prior=[{prior}]",
-                   "memory.prior_pretrain_bc=5", "memory.clone_anchor=10", "memory.freeze_normalizer=true")
+                   "memory.prior_pretrain_bc=5", "memory.clone_anchor=10", "memory.freeze_normalizer=true",
+                   "memory.clone_anchor_final=0.1", "memory.clone_anchor_anneal_frames=50")
     assert s["updates"] > 0
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/anchor_shift.csv")).read_text()
     shifts = [float(line.split(",")[1]) for line in logged.splitlines() if line[:1].isdigit()]
     assert len(shifts) == 2 and all(v >= 0 for v in shifts)
+    logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/anchor_weight.csv")).read_text()
+    weights = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
+    assert weights == [1.0, 0.1]  # memory.clone_anchor_final: 10 -> 0.1 geometric, after 25 and 50 of 50 frames
     assert any(p.name.endswith("clone_anchor") for p in (tmp_path / "mem.zarr-agent" / "components").iterdir())
     proc = subprocess.run(
         [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "memory.clone_anchor=10",

@@ -1,4 +1,4 @@
-"""The prior-memory experiments of docs/results.md (sections 8-13), as one resumable queue.
+"""The prior-memory experiments of docs/results.md (sections 8-14), as one resumable queue.
 
 Every run is ``recipes/her/train.py`` with 60k new env frames, 100 deterministic
 evaluation episodes every 2500 frames and ``collector.resume=true``: launching
@@ -89,6 +89,11 @@ def _runs() -> dict[str, list[str]]:
                                         "collector.total_frames=20000", "logger.target_success=null"]
         runs[f"anchor100-push-s{seed}"] = [o.replace("clone_anchor=10", "clone_anchor=100")
                                            for o in runs[f"anchor-push-s{seed}"]]
+        # ... with the weight annealed geometrically from 100 to 1 over 20k frames (the trust region widens
+        # 100x): can RL improve on the clone once the critics have learned its returns? 30k frames
+        runs[f"annealanchor-push-s{seed}"] = [
+            *[o for o in runs[f"anchor100-push-s{seed}"] if not o.startswith("collector.total")],
+            "memory.clone_anchor_final=1", "memory.clone_anchor_anneal_frames=20000", "collector.total_frames=30000"]
         runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
         runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]

@@ -48,6 +48,7 @@ from utils import (
     CpuClock,
     GoalNormalizer,
     append_history,
+    clone_anchor_weight,
     current_goals,
     evaluate,
     loss_keys,
@@ -122,6 +123,7 @@ def main(cfg: DictConfig):  # noqa: F821
             raise ValueError("memory.clone_anchor keeps the actor near the one cloned by memory.prior_pretrain_bc: "
                              "set memory.prior_pretrain_bc=N (and memory.prior=[path, ...]) too.")
         anchor = CloneAnchor(loss_module, cfg.memory.clone_anchor)
+        anchor.weight = clone_anchor_weight(cfg, 0)  # raises on a schedule end <= 0
         checkpoint.register("clone_anchor", anchor)
     progress = run_progress(cfg, checkpoint_path, remembered)  # collector.resume: where the run stopped
     freeze_stats = bool(cfg.memory.get("freeze_normalizer", False))  # memory.freeze_normalizer: the start's statistics
@@ -297,6 +299,9 @@ def main(cfg: DictConfig):  # noqa: F821
         if mix is not None:
             mix.ratio = prior_ratio(cfg, collected_frames)
             metrics["train/prior_ratio"] = mix.ratio
+        if anchor is not None:  # memory.clone_anchor_final: the trust region widens as the run goes
+            anchor.weight = clone_anchor_weight(cfg, collected_frames)
+            metrics["train/anchor_weight"] = anchor.weight
         if collected_frames >= init_random_frames:
             critic_only = collected_frames <= freeze_frames  # memory.actor_freeze_frames: critics learn the actor's returns first
             n = max(1, int(frames * utd_ratio))

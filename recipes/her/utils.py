@@ -202,6 +202,24 @@ def prior_ratio(cfg: DictConfig, frames: int) -> float:
     return float(start + t * (final - start))
 
 
+def clone_anchor_weight(cfg: DictConfig, frames: int) -> float:
+    """``w`` of ``memory.clone_anchor`` after ``frames`` new env frames.
+
+    ``memory.clone_anchor`` throughout, or, with ``memory.clone_anchor_final`` set,
+    geometric from ``clone_anchor`` to ``clone_anchor_final`` over
+    ``memory.clone_anchor_anneal_frames`` (the trust region's radius, about
+    ``1 / w``, then widens by the same factor every frame), constant after.
+    """
+    start, final = float(cfg.memory.clone_anchor), cfg.memory.get("clone_anchor_final")
+    horizon = cfg.memory.get("clone_anchor_anneal_frames") or 0
+    if final is None or horizon <= 0:
+        return start
+    if not final > 0:
+        raise ValueError(f"memory.clone_anchor_final must be > 0 (the anchor's last weight), got {final}.")
+    t = min(1.0, frames / horizon)
+    return float(start * (float(final) / start) ** t)
+
+
 def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dict | None:
     """Where a stopped run stands, for ``collector.resume=true`` (``None``: start the run fresh).
 
