@@ -44,7 +44,7 @@ def make_prior_buffers(cfg: DictConfig, make_replay_buffer) -> list:
         storage = ZarrStorage(to_absolute_path(str(path)), read_only=True)
         if not len(storage):
             raise ValueError(f"the prior memory {path!r} holds no transitions.")
-        buffers.append(make_replay_buffer(cfg, storage))
+        buffers.append(make_replay_buffer(cfg, storage, batch_size=None))  # sampled in part-batches only
     return buffers
 
 

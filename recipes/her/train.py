@@ -95,7 +95,9 @@ def main(cfg: DictConfig):  # noqa: F821
         )
 
     # Create the memory: storage, optional goal sampler, HER on top
-    replay_buffer = make_replay_buffer(cfg, make_storage(cfg, memory_path), make_sampler(cfg))
+    # beside prior memories the run's buffer is sampled in part-batches (PriorMix): no default size
+    own_batch = None if cfg.memory.get("prior") else cfg.optim.batch_size
+    replay_buffer = make_replay_buffer(cfg, make_storage(cfg, memory_path), make_sampler(cfg), batch_size=own_batch)
     goal_sampler = replay_buffer.sampler if cfg.replay_buffer.sampler.enabled else None
     remembered = len(replay_buffer)
 

@@ -84,8 +84,11 @@ def make_sampler(cfg: DictConfig):
     return _build(cfg.replay_buffer.sampler)
 
 
-def make_replay_buffer(cfg: DictConfig, storage, sampler=None) -> HERReplayBuffer:
+def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int | None = -1) -> HERReplayBuffer:
     """HER over ``storage``: goals relabelled from ``("next", "achieved_goal")``.
+
+    ``batch_size`` defaults to ``optim.batch_size``; ``None`` builds a buffer that is
+    only sampled with an explicit size (``PriorMix`` draws part-batches from each).
 
     The storage is an argument, not built here, so that the same function
     wraps any memory: the run's own store, or (for prior memories sampled
@@ -99,7 +102,7 @@ def make_replay_buffer(cfg: DictConfig, storage, sampler=None) -> HERReplayBuffe
         achieved_goal_key=("next", "achieved_goal"),
         storage=storage,
         sampler=sampler,
-        batch_size=cfg.optim.batch_size,
+        batch_size=cfg.optim.batch_size if batch_size == -1 else batch_size,
     )
 
 
