@@ -104,7 +104,7 @@ def plot(groups: dict[str, list[dict]], path: str, title: str, target: float) ->
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.8, 4.2))
-    colors = ["#e6550d", "#3182bd", "#31a354", "#756bb1", "#636363"]
+    colors = ["#e6550d", "#3182bd", "#31a354", "#756bb1", "#636363", "#d62728", "#8c564b", "#e377c2"]
     for (label, runs), color in zip(groups.items(), colors * 4):
         for i, r in enumerate(runs):
             if r["curve"]:
