@@ -230,6 +230,7 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     f = failures(str(tmp_path / "own.zarr-agent"),
                  ["env=pick_and_place", "network.hidden_sizes=[16,16]", "logger.eval_episodes=3"])
     assert f["episodes"] == 3 and f["untouched"] + f["near_miss"] + f["far"] == round(3 * (1 - f["success"]))
+    assert f["goals_on_table"] + f["goals_in_air"] == 3  # the split by goal height covers every episode
     # the prior memory is only read
     assert len(ZarrStorage(prior, read_only=True)) == n_prior
     # a prior written for another observation layout is refused with the reason

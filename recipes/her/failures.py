@@ -10,6 +10,10 @@ number of episodes) and sorts the failures by where the object ended::
 * near miss: pushed, ended 5-10 cm from the goal (the success radius is 5 cm);
 * far: pushed, ended more than 10 cm from the goal.
 
+It also splits the success rate by where the goal is: on the table, or in the air
+(FetchPickAndPlace puts half of its goals up to 45 cm above the table, where a
+push cannot take the object).
+
 The trailing arguments are hydra overrides of ``config.yaml``: give the ones the
 run was trained with (env, seed, network, ``logger.eval_episodes``).
 """
@@ -45,12 +49,17 @@ def failures(checkpoint: str, overrides: list[str]) -> dict:
     start_dist, end_dist = (goal - start).norm(dim=-1), (goal - end).norm(dim=-1)
     moved = (end - start).norm(dim=-1)
     fail = ~success
+    in_air = (goal[:, 2] - start[:, 2]) > 0.01  # the object starts on the table; push goals are at its height
     untouched = fail & (moved < 0.01)
     near = fail & ~untouched & (end_dist < 0.10)
     far = fail & ~untouched & ~near
     return {
         "episodes": int(success.numel()),
         "success": success.float().mean().item(),
+        "goals_on_table": int((~in_air).sum()),
+        "success_on_table": success[~in_air].float().mean().item() if (~in_air).any() else float("nan"),
+        "goals_in_air": int(in_air.sum()),
+        "success_in_air": success[in_air].float().mean().item() if in_air.any() else float("nan"),
         "untouched": int(untouched.sum()),
         "untouched_start_dist": [round(x, 3) for x in start_dist[untouched].tolist()],
         "near_miss": int(near.sum()),
