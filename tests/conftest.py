@@ -1,10 +1,65 @@
+"""Shared fixtures of the test suite, and its seeding.
+
+Every test starts from the same random state: an autouse fixture seeds
+``random``, ``numpy.random`` and ``torch`` from ``ROBOTMEM_TEST_SEED``
+(default ``0``) before each test (HER's "future" offsets, samplers without a
+generator and collectors draw from the global generators), and a failing test's report carries a
+"seed" section naming the value to replay it with. Tests that draw a
+schedule of their own (the SIGKILL loops) take their seed from
+:func:`seed_from_env`: their own variable if set, else ``ROBOTMEM_TEST_SEED``.
+"""
 from __future__ import annotations
 
+import os
+import random
+
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
 
 torch.set_num_threads(1)
+
+TEST_SEED_ENV = "ROBOTMEM_TEST_SEED"
+DEFAULT_TEST_SEED = 0
+
+
+def suite_seed() -> int:
+    """The suite's seed: ``$ROBOTMEM_TEST_SEED``, else 0."""
+    return int(os.environ.get(TEST_SEED_ENV, DEFAULT_TEST_SEED))
+
+
+def seed_from_env(name: str) -> int:
+    """A test's own seed: ``$<name>`` if set, else the suite's seed (:func:`suite_seed`)."""
+    return int(os.environ.get(name, suite_seed()))
+
+
+_SEED_KEY = pytest.StashKey[int]()
+
+
+@pytest.fixture(autouse=True)
+def _seed_every_test(request):
+    seed = suite_seed()
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    request.node.stash[_SEED_KEY] = seed
+
+
+def pytest_report_header(config):
+    return f"{TEST_SEED_ENV}={suite_seed()} (random, numpy and torch are seeded with it before every test)"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed:
+        seed = item.stash.get(_SEED_KEY, suite_seed())
+        report.sections.append(
+            ("seed", f"{TEST_SEED_ENV}={seed} (random, numpy and torch were seeded with it before this test; "
+                     f"set it to replay or vary the draw)")
+        )
 
 
 def make_transitions(n: int, start: int = 0, *, episode_len: int = 10, goal_dim: int = 3) -> TensorDict:

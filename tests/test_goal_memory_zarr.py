@@ -24,11 +24,6 @@ GOAL = ("next", "achieved_goal")
 SUCCESS = ("next", "is_success")
 
 
-@pytest.fixture(autouse=True)
-def _seed():
-    torch.manual_seed(0)  # HER draws its "future" offsets from the global generator
-
-
 def zarr_rb(path, max_size=None, *, sampler=None, batch_size=64, **kw):
     storage = ZarrStorage(path, max_size, chunk_rows=64, **kw, sample_tags=True)
     return TensorDictReplayBuffer(storage=storage, sampler=sampler, batch_size=batch_size)

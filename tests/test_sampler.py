@@ -20,11 +20,6 @@ ENV_NAMES = ("FetchPush-v4", "FetchSlide-v4")
 fetch_rows = partial(_rows.fetch_rows, envs=len(ENV_NAMES))
 
 
-@pytest.fixture(autouse=True)
-def _seed():
-    torch.manual_seed(0)  # buffers without a generator draw from the global one
-
-
 def make_rb(sampler, n=4000, capacity=8000, batch_size=512, seed=0, **kw):
     gen = torch.Generator().manual_seed(seed)
     rb = TensorDictReplayBuffer(
