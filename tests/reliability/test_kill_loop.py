@@ -36,9 +36,23 @@ It reports the loss window: for each kill, how long before the kill the oldest
 lost row's ``extend`` had returned (rows lost = extends that returned, minus the
 committed write count).
 
+A ``commit`` or ``journal`` moment that does not come (within a minute: a
+healthy writer commits every 20 ms and wraps the ring within a second) is
+killed anyway and counted as ``random``; a kill that finds the writer still
+starting counts as ``startup``. The counts of the kinds that happened are
+reported, and the loop does not end on an unlucky schedule: after the planned
+kills it kills on (a bounded number of times) until every kind the schedule
+asked for has happened, the ring has wrapped and a third of the planned kills
+saw committed progress (kills during start-up never count as progress). Every
+run asks for every kind (a schedule shorter than five kills is completed by
+extra kills). Only writers that stop committing reach
+the bound, and the failure says so.
+
 Kill count: ``ROBOTMEM_KILLS`` (default 8); the full run is
 ``ROBOTMEM_KILLS=120 python -m pytest -s tests/reliability/test_kill_loop.py``.
-``ROBOTMEM_KILL_SEED`` replays a schedule.
+The schedule is seeded: ``ROBOTMEM_KILL_SEED`` if set, else
+``ROBOTMEM_TEST_SEED`` (default 0); the seed is printed with ``-s`` and named
+in every failure.
 """
 from __future__ import annotations
 
@@ -55,6 +69,7 @@ from pathlib import Path
 import pytest
 import torch
 import zarr
+from conftest import seed_from_env
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_robotmem import ZarrStorage
@@ -75,7 +90,7 @@ def _kills() -> int:
 
 
 def _seed() -> int:
-    return int(os.environ.get("ROBOTMEM_KILL_SEED", random.randrange(10**6)))
+    return seed_from_env("ROBOTMEM_KILL_SEED")
 
 
 class Expectations:
@@ -160,29 +175,47 @@ def _journal_pending(path: Path) -> bool:
         return False
 
 
+# seconds to wait for a kind's moment (the first extend, a commit, a pending journal): each
+# comes within milliseconds of a healthy writer's start (20 ms commits, a ring that wraps in
+# about a second); only a stuck writer misses it
+MOMENT_TIMEOUT = 60.0
+
+
+def _wait_for(moment, p, poll: float) -> bool:
+    """Polls until ``moment()`` holds (True), the writer died or ``MOMENT_TIMEOUT`` passed (False)."""
+    end = time.monotonic() + MOMENT_TIMEOUT
+    while p.is_alive() and time.monotonic() < end:
+        if moment():
+            return True
+        time.sleep(poll)
+    return False
+
+
 def _wait_and_kill(p, prog, kind: str, path: Path, rng: random.Random) -> str:
-    """Waits for the moment of ``kind``, sends SIGKILL; returns the kind that happened."""
-    deadline = time.monotonic() + 20
+    """Waits for the moment of ``kind``, sends SIGKILL; returns the kind that happened.
+
+    A ``commit`` or ``journal`` moment not seen within ``MOMENT_TIMEOUT`` (the
+    writer never committed, or never wrapped) is killed anyway and reported as
+    ``random``; a writer that never returned from its first extend as
+    ``startup``. The caller retries a requested kind that did not happen.
+    """
     if kind == "startup":
         time.sleep(rng.random() * 0.25)
     else:
+        deadline = time.monotonic() + MOMENT_TIMEOUT
         while prog[_gen.STATE] < 2 and p.is_alive() and time.monotonic() < deadline:
             time.sleep(0.002)
-        if kind == "random":
+        if prog[_gen.STATE] < 2:
+            kind = "startup"
+        elif kind == "random":
             time.sleep(rng.random() * 0.8)
         elif kind == "commit":
             time.sleep(rng.random() * 0.3)
             before = _zarr_json_state(path)
-            end = time.monotonic() + 2
-            while _zarr_json_state(path) == before and time.monotonic() < end:
-                time.sleep(0.0005)
-            kind = "commit" if time.monotonic() < end else "random"
+            kind = "commit" if _wait_for(lambda: _zarr_json_state(path) != before, p, 0.0005) else "random"
         elif kind == "journal":
             time.sleep(rng.random() * 0.2)
-            end = time.monotonic() + 2
-            while not _journal_pending(path) and time.monotonic() < end:
-                time.sleep(0.0002)
-            kind = "journal" if time.monotonic() < end else "random"
+            kind = "journal" if _wait_for(lambda: _journal_pending(path), p, 0.0002) else "random"
     if p.is_alive():
         os.kill(p.pid, signal.SIGKILL)
     return kind
@@ -203,17 +236,55 @@ def _loss_window(prog, stamps, W: int, t_kill: float) -> tuple[int, float]:
     return lost, (t_kill - oldest) if oldest is not None else float("nan")
 
 
-def run_kill_loop(tmp_path: Path, kills: int, seed: int) -> dict:
+def _schedule(kills: int, rng: random.Random) -> list[str]:
+    """The kinds of the planned kills: a ``random`` one first, every kind in the next four, then draws."""
+    first = list(KINDS)
+    rng.shuffle(first)
+    return (["random"] + first + [rng.choice(KINDS) for _ in range(kills)])[:kills]
+
+
+def run_kill_loop(tmp_path: Path, kills: int, seed: int, *, max_extra_kills: int = 60) -> dict:
+    """``kills`` planned kills, then more until the run shows what it is for.
+
+    After the planned kills the loop goes on (at most ``max_extra_kills``
+    more) while a kind the schedule asked for has not happened yet (a
+    ``commit`` or ``journal`` moment missed, a writer still starting when
+    its kill came), the ring has not wrapped, or fewer than a third of the
+    planned kills saw committed progress. An extra kill is of a missing kind,
+    else of kind ``commit`` (after a commit: progress). Kills during start-up
+    do not count toward progress; they only add kills. The bound is reached
+    only if writers stop committing: the failure says so, with the seed.
+    """
     path = tmp_path / "store.zarr"
     err_file = tmp_path / "writer_error.txt"
     ctx = _gen.writer_context()
     rng = random.Random(seed)
     exp = Expectations(path)
+    schedule = _schedule(kills, rng)
+    requested = set(KINDS)  # every run asks for every kind: extra kills add those a short schedule lacks
     kinds_done = {k: 0 for k in KINDS}
     windows, losses = [], []
     progressed = 0
-    for it in range(kills):
-        kind = "random" if it == 0 else rng.choice(KINDS)
+    need_progress = kills // 3
+
+    def missing() -> list[str]:
+        return [k for k in KINDS if k in requested and not kinds_done[k]]
+
+    it = 0
+    while True:
+        if it < kills:
+            kind = schedule[it]
+        elif missing() or not exp.wrapped or progressed < need_progress:
+            if it >= kills + max_extra_kills:
+                pytest.fail(
+                    f"after {it} kills (seed {seed}) the run still lacks what it is for: kinds that never "
+                    f"happened {missing()}, ring wrapped {exp.wrapped} (write_count {exp.last_w}, "
+                    f"max_size {MAX_SIZE}), kills with progress {progressed} < {need_progress}; kinds "
+                    f"{kinds_done}. Writers that stop committing are a bug."
+                )
+            kind = (missing() or ["commit"])[0]
+        else:
+            break
         prog = ctx.RawArray("q", _gen.PROGRESS_SLOTS)
         stamps = ctx.RawArray("d", 2 * _gen.STAMP_SLOTS)
         args = dict(path=str(path), max_size=MAX_SIZE, chunk_rows=CHUNK_ROWS, commit_interval=COMMIT_INTERVAL,
@@ -230,7 +301,8 @@ def run_kill_loop(tmp_path: Path, kills: int, seed: int) -> dict:
         kinds_done[kind] += 1
         if prog[_gen.STATE] >= 1:  # it opened: at the state the last check saw
             assert prog[_gen.W_OPEN] == exp.last_w, (
-                f"kill {it}: the writer opened at write_count {prog[_gen.W_OPEN]}, the check saw {exp.last_w}"
+                f"kill {it} (seed {seed}): the writer opened at write_count {prog[_gen.W_OPEN]}, "
+                f"the check saw {exp.last_w}"
             )
         before = exp.last_w
         try:
@@ -238,19 +310,21 @@ def run_kill_loop(tmp_path: Path, kills: int, seed: int) -> dict:
                           written_at_most=max(exp.last_w, prog[_gen.W_TRYING]))
         except AssertionError as e:
             raise AssertionError(f"after kill {it} ({kind}, seed {seed}): {e}") from e
-        progressed += W > before
+        progressed += kind != "startup" and W > before
         if prog[_gen.STATE] >= 2:
             lost, window = _loss_window(prog, stamps, W, t_kill)
             losses.append(lost)
             if lost:
                 windows.append(window)
+        it += 1
     # the last writer's successor appends after everything that survived
     with ZarrStorage(path) as st:
         rb = TensorDictReplayBuffer(storage=st, batch_size=4)
         W = st.state_dict()["zarr"]["write_count"]
         rb.extend(make_rows(torch.arange(W, W + 7)))
     exp.check(read_only=True, durable=W + 7, written_at_most=W + 7)
-    return dict(seed=seed, kills=kills, kinds=kinds_done, rows_written=exp.last_w, wraps=exp.last_w // MAX_SIZE,
+    return dict(seed=seed, kills=it, kills_planned=kills, kinds=kinds_done, kinds_requested=sorted(requested),
+                rows_written=exp.last_w, wraps=exp.last_w // MAX_SIZE, wrapped=exp.wrapped,
                 rows_checked=exp.rows_checked, pending_journals_at_reopen=exp.pending_journals,
                 kills_with_progress=progressed, episodes_closed_at_reopen=len(exp.forced_done),
                 rows_lost_median=statistics.median(losses) if losses else 0, rows_lost_max=max(losses, default=0),
@@ -261,7 +335,12 @@ def run_kill_loop(tmp_path: Path, kills: int, seed: int) -> dict:
 @pytest.mark.timeout(3600)
 def test_sigkill_loop(tmp_path):
     kills = _kills()
-    result = run_kill_loop(tmp_path, kills, _seed())
+    seed = _seed()
+    print(f"kill loop: ROBOTMEM_KILL_SEED={seed} ROBOTMEM_KILLS={kills}")
+    result = run_kill_loop(tmp_path, kills, seed)
     print("kill loop:", json.dumps(result))
-    assert result["wraps"] >= 1, f"the ring never wrapped: {result}"
+    # (each holds by construction: the loop kills on until it does, or fails saying why)
+    assert result["wrapped"] and result["wraps"] >= 1, f"the ring never wrapped: {result}"
+    assert all(result["kinds"][k] for k in result["kinds_requested"]), f"a requested kill kind never happened: {result}"
+    assert set(result["kinds_requested"]) == set(KINDS), result  # every run asks for every kind
     assert result["kills_with_progress"] >= kills // 3, f"the writers made no progress between kills: {result}"

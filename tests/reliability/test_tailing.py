@@ -11,12 +11,13 @@ store ``read_only=True`` and calls ``refresh()`` in a loop. Every time, it check
   rows being overwritten may already hold newer writes (docs/storage.md,
   "Concurrency"), also when the writer wraps during the reader's load.
 
-``ROBOTMEM_TAIL_SECONDS`` sets how long the reader tails (default 3).
+``ROBOTMEM_TAIL_SECONDS`` sets how long the reader tails (default 3). The
+writer's batch sizes and pauses are seeded: ``ROBOTMEM_TAIL_SEED`` if set, else
+``ROBOTMEM_TEST_SEED`` (default 0); the seed is printed and named in every failure.
 """
 from __future__ import annotations
 
 import os
-import random
 import runpy
 import signal
 import sys
@@ -24,6 +25,7 @@ import time
 
 import pytest
 import torch
+from conftest import seed_from_env
 
 from torchrl_robotmem import ZarrStorage
 
@@ -38,11 +40,13 @@ MAX_SIZE = 200
 def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_path):
     path = tmp_path / "tail.zarr"
     seconds = float(os.environ.get("ROBOTMEM_TAIL_SECONDS", 3))
+    seed = seed_from_env("ROBOTMEM_TAIL_SEED")
+    print(f"tailing: ROBOTMEM_TAIL_SEED={seed}")
     ctx = _gen.writer_context()
     prog = ctx.RawArray("q", _gen.PROGRESS_SLOTS)
     stamps = ctx.RawArray("d", 2 * _gen.STAMP_SLOTS)
     args = dict(path=str(path), max_size=MAX_SIZE, chunk_rows=16, commit_interval=0.02,
-                seed=random.randrange(10**6), prog=prog, stamps=stamps, err_file=str(tmp_path / "err.txt"),
+                seed=seed, prog=prog, stamps=stamps, err_file=str(tmp_path / "err.txt"),
                 max_batch=30, pause=0.01, flush_prob=0.05)
     writer = ctx.Process(target=runpy.run_path, args=(_gen.__file__,),
                          kwargs={"init_globals": {"ARGS": args}, "run_name": _gen.WRITER_RUN_NAME})
@@ -57,11 +61,12 @@ def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_pat
         refreshes = rows_checked = newer_rows = 0
         end = time.monotonic() + seconds
         while time.monotonic() < end or last_w <= MAX_SIZE or refreshes < 3:  # (slow refreshes on a busy box)
-            assert time.monotonic() < end + 60, f"the ring never wrapped (write_count {last_w})"
+            assert time.monotonic() < end + 60, f"the ring never wrapped (write_count {last_w}, ROBOTMEM_TAIL_SEED={seed})"
             n = reader.refresh()
             W = int(reader.state_dict()["zarr"]["write_count"])
-            assert n >= last_n and W >= last_w, f"went backwards: len {last_n} -> {n}, write_count {last_w} -> {W}"
-            assert n == min(W, MAX_SIZE)
+            assert n >= last_n and W >= last_w, (
+                f"went backwards: len {last_n} -> {n}, write_count {last_w} -> {W} (ROBOTMEM_TAIL_SEED={seed})")
+            assert n == min(W, MAX_SIZE), f"len {n}, write_count {W} (ROBOTMEM_TAIL_SEED={seed})"
             td = reader[:n]
             w = -td["action"][:, 0]
             # whole rows at the slot of their write number, none older than write_count says
@@ -72,7 +77,8 @@ def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_pat
             if slot.any() or stale.any():
                 bad["slot"] = w[slot | stale][:10].tolist()
             newer_rows += int((w >= W).sum())
-            assert not bad, f"refresh {refreshes} (write_count {W}) read incomplete or wrong rows: {bad}"
+            assert not bad, (
+                f"refresh {refreshes} (write_count {W}, ROBOTMEM_TAIL_SEED={seed}) read incomplete or wrong rows: {bad}")
             rows_checked += n
             refreshes += 1
             last_n, last_w = n, W
