@@ -169,3 +169,59 @@ def test_notebook_cell_run_twice(tmp_path):
     mem = RobotMemory(tmp_path / "x.db")
     assert len(mem) == 2 and len(RobotMemory(tmp_path / "x.db", read_only=True)) == 2
     mem.close()
+
+
+def _files(path):
+    import hashlib
+
+    return {p.relative_to(path).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("bad", [
+    ("reward", float("nan"), ValueError, r"'reward' is nan"),
+    ("reward", float("inf"), ValueError, r"'reward' is inf"),
+    ("reward", [1.0, 2.0], ValueError, r"'reward' must be one number \(shape \[\] or \[1\]\), got shape \[2\]"),
+    ("reward", np.zeros((1, 1)), ValueError, r"'reward' must be one number"),
+    ("reward", "high", TypeError, r"'reward' must be one number"),
+    ("is_success", float("nan"), ValueError, r"'is_success' is nan"),
+    ("is_success", -float("inf"), ValueError, r"'is_success' is -inf"),
+    ("is_success", [1, 0], ValueError, r"'is_success' must be one number .*shape \[2\]"),
+], ids=["reward-nan", "reward-inf", "reward-pair", "reward-2d", "reward-str", "success-nan", "success-inf",
+        "success-pair"])
+def test_reward_and_success_are_checked_like_the_observation(tmp_path, bad):
+    """A NaN / inf / wrongly shaped reward or success is refused, naming it; the memory is unchanged."""
+    name, value, error, match = bad
+    path = tmp_path / "m.zarr"
+    ok = {"achieved_goal": [0, 0, 0], "desired_goal": [1, 0, 0], "is_success": 0}
+    with RobotMemory(path, max_size=100, background=False) as mem:
+        mem.save_perception(np.zeros(25), np.zeros(4), -1.0, ok)
+        mem.flush()
+        before = _files(path)
+        reward, meta = (value, ok) if name == "reward" else (-1.0, {**ok, "is_success": value})
+        with pytest.raises(error, match=match):
+            mem.save_perception(np.ones(25), np.zeros(4), reward, {**meta, "env": "FetchPush-v4"})
+        mem.flush()
+        assert _files(path) == before, "a refused transition changed the store"
+        assert len(mem) == 1 and mem.buffer.writer._cursor == 1 and mem.storage.env_names == ()
+        # the open episode continues: the refused call left no trace in it
+        mem.save_perception(np.full(25, 2.0), np.zeros(4), np.float32(0.5), {**ok, "is_success": np.array([True])})
+        s = mem.storage
+        assert s["episode"][:2].tolist() == [0, 0]
+        assert s["observation"][1].tolist() == [0.0] * 25  # the root values are the previous step's
+        assert s["next", "reward"][:2].squeeze(-1).tolist() == [-1.0, 0.5]
+        assert s["next", "is_success"][:2].tolist() == [0.0, 1.0]
+
+
+def test_recall_top_k_far_above_the_rows(tmp_path):
+    """top_k = 10**12 on a memory of 3 rows (capacity 10**6): 3 results, nothing allocated for the rest."""
+    with RobotMemory(tmp_path / "m.zarr", max_size=10**6, background=False) as mem:
+        for t in range(3):
+            mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {"achieved_goal": [0.1 * t, 0, 0],
+                                                                  "desired_goal": [1, 0, 0], "is_success": t == 2})
+        out = mem.recall([0.0, 0.0, 0.0], top_k=10**12)
+        assert out.batch_size == (3,) and out["index"].tolist() == [0, 1, 2] and out["mask"].all()
+        succ = mem.recall([0.0, 0.0, 0.0], top_k=10**12, success_only=True)
+        assert succ["mask"].tolist() == [True, False, False] and succ["index"].tolist() == [2, -1, -1]
+        batch = mem.recall(np.zeros((2, 3)), top_k=10**12)
+        assert batch.batch_size == (2, 3)

@@ -202,7 +202,7 @@ def test_fewer_matches_than_k_are_masked_zeros():
 def test_empty_storage_gives_masked_result():
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
     out = GoalIndex(rb).recall(torch.zeros(3), k=4)
-    assert out.batch_size == torch.Size([4]) and not out["mask"].any()
+    assert out.batch_size == torch.Size([0]) and not out["mask"].any()  # k is clamped to the rows stored
     assert (out["index"] == -1).all() and torch.isinf(out["distance"]).all()
     rb, gen = make_rb(50)
     index = GoalIndex(rb)
@@ -437,3 +437,43 @@ def test_index_pickles_and_rebuilds_lazily():
     assert clone._views == {} and clone.tail_size == 64
     for a, b in zip(clone.search(queries, 3), expected):
         assert torch.equal(a, b)
+
+
+# -- k above the rows stored ------------------------------------------------------
+@pytest.mark.parametrize("backend", ["kdtree", "brute"])
+def test_k_far_above_the_rows_is_clamped_to_them(backend):
+    """``k`` = 10**12 over 60 rows: the result has 60 columns, the rows passing the filter first.
+
+    Before the clamp the index allocated ``[B, k]`` arrays (numpy raised MemoryError
+    for 10**12; k = 10**8 was the probe's gigabytes).
+    """
+    import tracemalloc
+
+    rb, gen = make_rb(60, capacity=1000)
+    index = GoalIndex(rb, backend=backend)
+    queries = torch.rand(4, 3, generator=gen)
+    huge = 10**12
+    tracemalloc.start()
+    try:
+        dist, idx, mask = index.search(queries, huge)
+        out = index.recall(queries[0], huge, success_only=True)
+        per_episode = index.search(queries, huge, one_per_episode=True)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20, f"{peak} bytes traced for a search over 60 rows"
+    assert dist.shape == idx.shape == mask.shape == (4, 60) and mask.all()
+    assert_exact(index, rb, queries, 60)  # k = the rows stored: the same answer as brute force
+    assert torch.equal(idx, index.search(queries, 60)[1])
+    # the filter: 60 columns, as many unmasked as rows pass it, the rest -1 / inf
+    success = column(rb, ("next", "is_success")) > 0.5
+    assert out.batch_size == (60,) and int(out["mask"].sum()) == int(success.sum()) > 0
+    assert set(out["index"][out["mask"]].tolist()) == set(success.nonzero().squeeze(-1).tolist())
+    assert (out["index"][~out["mask"]] == -1).all() and torch.isinf(out["distance"][~out["mask"]]).all()
+    # one_per_episode: one column per stored row, as many unmasked as there are episodes (rows 0..59: 2)
+    d_ep, i_ep, m_ep = per_episode
+    assert m_ep.shape == (4, 60) and m_ep.sum(1).tolist() == [2] * 4
+    assert (column(rb, "episode")[i_ep[m_ep].reshape(4, 2)].sort(1).values == torch.tensor([0, 1])).all()
+    # the module function and k just above the rows
+    assert recall(rb, queries, 61)["index"].shape == (4, 60)
+    assert recall(rb, queries, 59)["index"].shape == (4, 59)  # below the rows: k columns, unchanged

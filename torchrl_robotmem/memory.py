@@ -116,13 +116,18 @@ class RobotMemory:
     ) -> int:
         """Stores one transition; returns its row in the storage.
 
+        Every value is checked before anything is stored: the arrays must be
+        finite numbers, ``reward`` and ``is_success`` one finite number each
+        (shape ``[]`` or ``[1]``); otherwise a ``ValueError`` / ``TypeError``
+        names the argument and the memory is left as it was.
+
         Args:
             observation: the observation after the step (``obs["observation"]``).
             action: the action taken.
-            reward: the reward received.
+            reward: the reward received (one number).
             metadata (dict): ``achieved_goal`` and ``desired_goal`` (required),
-                ``is_success``, ``env`` (a name), and optionally ``terminated``,
-                ``truncated`` or ``done`` to end the episode.
+                ``is_success`` (one number or bool), ``env`` (a name), and optionally
+                ``terminated``, ``truncated`` or ``done`` to end the episode.
         """
         metadata = dict(metadata or {})
         for key in ("achieved_goal", "desired_goal"):
@@ -139,7 +144,8 @@ class RobotMemory:
         terminated = bool(metadata.pop("terminated", False))
         truncated = bool(metadata.pop("truncated", False))
         done = bool(metadata.pop("done", False)) or terminated or truncated
-        success = float(np.asarray(metadata.pop("is_success", 0.0)))
+        reward = _scalar(reward, "reward")
+        success = _scalar(metadata.pop("is_success", 0.0), "is_success")
         env = metadata.pop("env", None)
         if metadata:
             raise KeyError(
@@ -160,7 +166,7 @@ class RobotMemory:
                 "action": _row(action, "action"),
                 "next": {
                     **step,
-                    "reward": torch.as_tensor(np.asarray(reward, dtype=np.float32)).reshape(1),
+                    "reward": torch.tensor([reward], dtype=torch.float32),
                     "done": torch.tensor([done]),
                     "terminated": torch.tensor([terminated]),
                     "truncated": torch.tensor([truncated or (done and not terminated)]),
@@ -296,6 +302,20 @@ class RobotMemory:
 
     def __repr__(self) -> str:
         return f"RobotMemory({self.storage!r})"
+
+
+def _scalar(value: Any, name: str) -> float:
+    """One finite number (a reward, a success flag), or an error naming ``name``."""
+    try:
+        a = np.asarray(value, dtype=np.float32)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name!r} must be one number, got {type(value).__name__}: {err}") from None
+    if a.size != 1 or a.ndim > 1:
+        raise ValueError(f"{name!r} must be one number (shape [] or [1]), got shape {list(a.shape)}: {a.tolist()}.")
+    x = float(a.reshape(()))
+    if not np.isfinite(x):
+        raise ValueError(f"{name!r} is {x}; a stored {name} must be a finite number.")
+    return x
 
 
 def _row(value: Any, name: str) -> torch.Tensor:

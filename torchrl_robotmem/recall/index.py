@@ -289,7 +289,8 @@ class GoalIndex:
 
         Args:
             goal: ``[goal_dim]`` or ``[B, goal_dim]`` (tensor, array or list).
-            k (int): number of neighbours (>= 1).
+            k (int): number of neighbours (>= 1). Clamped to the rows stored:
+                a ``k`` above them costs no more than ``k`` equal to them.
 
         Keyword Args:
             filter (RowFilter, optional): the filters as one value (instead of
@@ -304,8 +305,12 @@ class GoalIndex:
 
         Returns:
             ``distance`` (float32), ``index`` (int64 storage row) and ``mask``
-            (bool), each ``[k]`` or ``[B, k]``, nearest first. Missing matches
-            have ``mask=False``, ``distance=inf`` and ``index=-1``.
+            (bool), each ``[w]`` or ``[B, w]`` with ``w = min(k, rows stored)``
+            (``w = k`` whenever the storage holds ``k`` rows or more; an empty
+            storage gives ``w = 0``), nearest first. Missing matches (fewer rows
+            pass the filter or ``max_distance``) have ``mask=False``,
+            ``distance=inf`` and ``index=-1``; the search itself never asks for
+            more than the rows that pass the filter.
         """
         k = _check_k(k)
         max_d = _check_max_distance(max_distance)
@@ -316,14 +321,24 @@ class GoalIndex:
             self._sync()
             q, batched = self._parse_goal(goal)
             Q = q.shape[0]
-            if self._tracker.goal_shape is None or self._tracker.n == 0 or Q == 0:
-                d = np.full((Q, k), np.inf)
-                p = np.full((Q, k), -1, dtype=np.int64)
-            else:
+            # k is clamped to the rows stored (the width of the result) and to the rows
+            # passing the filter (the search): nothing is allocated for rows that do not exist
+            width = min(k, self._tracker.n) if self._tracker.goal_shape is not None else 0
+            kk = 0
+            if width and Q:
                 if one_per_episode:
                     self._tracker.track(self.episode_key, "one_per_episode")
                 view = self._view(key)
-                d, p = self._search_episodes(view, q, k, max_d) if one_per_episode else view.search(q, k, max_d)
+                view.sync()
+                kk = min(width, view.size)
+            if kk:
+                d, p = self._search_episodes(view, q, kk, max_d) if one_per_episode else view.search(q, kk, max_d)
+                if kk < width:
+                    d = np.pad(d, ((0, 0), (0, width - kk)), constant_values=np.inf)
+                    p = np.pad(p, ((0, 0), (0, width - kk)), constant_values=-1)
+            else:
+                d = np.full((Q, width), np.inf)
+                p = np.full((Q, width), -1, dtype=np.int64)
         if not batched:
             d, p = d[0], p[0]
         return torch.from_numpy(d.astype(np.float32)), torch.from_numpy(p), torch.from_numpy(p >= 0)
@@ -342,11 +357,11 @@ class GoalIndex:
     ) -> TensorDictBase:
         """The k stored transitions whose goals are nearest to ``goal``, with their context.
 
-        Same arguments as :meth:`search`. Returns a TensorDict of batch ``[k]``
-        (or ``[B, k]``) with every stored key of those rows (observation,
-        action, goals, ``"next"`` entries, tags...) plus ``distance``
-        (float32), ``mask`` (bool) and ``index`` (int64 storage row). Masked
-        entries hold zeros.
+        Same arguments as :meth:`search`. Returns a TensorDict of batch ``[w]``
+        (or ``[B, w]``), ``w = min(k, rows stored)``, with every stored key of
+        those rows (observation, action, goals, ``"next"`` entries, tags...)
+        plus ``distance`` (float32), ``mask`` (bool) and ``index`` (int64
+        storage row). Masked entries hold zeros.
         """
         dist, index, mask = self.search(goal, k, filter=filter, success_only=success_only, env=env, run=run,
                                         max_distance=max_distance, one_per_episode=one_per_episode)
