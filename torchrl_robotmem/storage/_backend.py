@@ -198,6 +198,15 @@ class WriterLock:
     when the holder dies, so a crashed writer never blocks the next run. The
     lock is taken on the directory itself so that no foreign file appears in
     the Zarr hierarchy.
+
+    The writer's commit worker shares the lock (it may write the store). A
+    worker outlives its writer only while it cannot run (``SIGSTOP``: it
+    otherwise exits within 10 ms of its writer's death), and would then keep the
+    store locked forever. So a refused lock is diagnosed from ``/proc``: the
+    error names every other process that has the directory open, and if each
+    is a commit worker (its command line runs ``_commit_worker.py`` and records
+    the pid of the writer that started it) whose writer is dead (it was
+    re-parented), those orphans are killed and the lock taken over.
     """
 
     def __init__(self, directory: Path):
@@ -206,6 +215,7 @@ class WriterLock:
         # a writer that has just died may leave its commit worker alive for a few ms
         # (it shares the lock, see storage/_commit_worker.py): wait a little first
         deadline = time.monotonic() + float(os.environ.get("TORCHRL_ROBOTMEM_LOCK_WAIT", 2.0))
+        took_over = False
         while True:
             try:
                 fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -214,11 +224,21 @@ class WriterLock:
                 if time.monotonic() < deadline:
                     time.sleep(0.02)
                     continue
+            holders = lock_holders(directory)
+            if holders and not took_over and all(h.orphan_worker for h in holders):
+                # only commit workers of dead writers hold it: nothing can write through them any more
+                _kill_and_wait([h.pid for h in holders])
+                took_over = True
+                deadline = time.monotonic() + 5.0
+                continue
             os.close(self._fd)
             self._fd = None
+            who = "; ".join(str(h) for h in holders) if holders else (
+                "no other process visible to this user has it open: another ZarrStorage in this process, "
+                "or a process of another user")
             raise RuntimeError(
                 f"Another process (or another ZarrStorage in this process) is writing to "
-                f"{directory}. A store has one writer at a time; open it with "
+                f"{directory} ({who}). A store has one writer at a time; open it with "
                 f"read_only=True to read while it is being written."
             )
 
@@ -230,6 +250,99 @@ class WriterLock:
 
     def check(self) -> None:
         """Nothing to check: the OS holds a ``flock`` for as long as its holder lives."""
+
+
+class LockHolder:
+    """A process that has a store directory open (see :func:`lock_holders`)."""
+
+    def __init__(self, pid: int, cmdline: list[str], writer_pid: int | None, parent_pid: int | None) -> None:
+        self.pid = pid
+        self.cmdline = cmdline
+        self.writer_pid = writer_pid  # for a commit worker: the writer that started it
+        self.parent_pid = parent_pid
+
+    @property
+    def orphan_worker(self) -> bool:
+        """A commit worker whose writer is dead: it was re-parented, and its writer's pid has no process."""
+        if self.writer_pid is None or self.parent_pid in (None, self.writer_pid):
+            return False
+        return _process_state(self.writer_pid) in (None, "Z", "X")  # a live process there (reused pid): refuse
+
+    def __str__(self) -> str:
+        if self.writer_pid is None:
+            return f"pid {self.pid}: {' '.join(self.cmdline)[:120] or '?'}"
+        state = "whose writer is dead" if self.orphan_worker else "alive"
+        return f"pid {self.pid}: the commit worker of writer pid {self.writer_pid} ({state})"
+
+
+def lock_holders(directory: Path) -> list[LockHolder]:
+    """Every other process that has ``directory`` open, read from ``/proc`` (Linux; else empty).
+
+    Processes of other users are not visible and not listed.
+    """
+    try:
+        target = os.stat(directory)
+        pids = [int(name) for name in os.listdir("/proc") if name.isdigit()]
+    except OSError:
+        return []
+    me, out = os.getpid(), []
+    for pid in pids:
+        if pid == me:
+            continue
+        fd_dir = f"/proc/{pid}/fd"
+        try:
+            fds = os.listdir(fd_dir)
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                st = os.stat(f"{fd_dir}/{fd}")
+            except OSError:
+                continue
+            if (st.st_dev, st.st_ino) == (target.st_dev, target.st_ino):
+                out.append(_describe_process(pid))
+                break
+    return out
+
+
+def _describe_process(pid: int) -> LockHolder:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            cmdline = [a.decode(errors="replace") for a in f.read().split(b"\0") if a]
+        with open(f"/proc/{pid}/stat") as f:
+            parent = int(f.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return LockHolder(pid, [], None, None)
+    writer = None
+    for i, arg in enumerate(cmdline):
+        # python -s .../storage/_commit_worker.py FD WRITER_PID
+        if arg.endswith("_commit_worker.py") and len(cmdline) == i + 3 and cmdline[i + 2].isdigit():
+            writer = int(cmdline[i + 2])
+    return LockHolder(pid, cmdline, writer, parent)
+
+
+def _process_state(pid: int) -> str | None:
+    """The state letter of a process (``R``, ``S``, ``T``, ``Z``...), ``None`` if there is none."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return None
+
+
+def _kill_and_wait(pids: list[int], timeout: float = 5.0) -> None:
+    import signal
+
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)  # also ends a stopped process
+        except OSError:
+            pass
+    deadline = time.monotonic() + timeout
+    for pid in pids:
+        # exited once a zombie (its files are closed) or gone
+        while _process_state(pid) not in (None, "Z", "X") and time.monotonic() < deadline:
+            time.sleep(0.01)
 
 
 # -- the writer lock of object stores -----------------------------------------------

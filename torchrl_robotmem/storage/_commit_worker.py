@@ -32,6 +32,15 @@ receives them) and exits within 10 ms of its parent's death, abandoning a
 commit in hand exactly as a killed in-process writer would: chunks first,
 then one atomic metadata write (or the journal) keep the store consistent, and
 the lock it shares keeps a new writer out until it is gone.
+
+The worker is an accelerator, never the only copy of anything: a reply that
+does not come within :func:`reply_deadline` (a few seconds plus a per-byte
+allowance), a closed channel or a dead process raise :class:`CommitWorkerGone`
+after the worker is killed (``SIGKILL`` also ends a stopped process), and the
+parent commits in-process from its RAM mirror instead. Its command line
+records the pid of the writer that started it (``_commit_worker.py FD
+WRITER_PID``): a writer lock held only by a worker whose writer is dead can be
+identified and taken over (see ``WriterLock``).
 """
 from __future__ import annotations
 
@@ -44,11 +53,26 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 from typing import Any
 
 _HEADER = struct.Struct("<Q")
-# seconds the parent waits for one reply (a commit of one chunk takes milliseconds)
-_REPLY_TIMEOUT = float(os.environ.get("TORCHRL_ROBOTMEM_WORKER_TIMEOUT", 300))
+# Seconds the parent waits for one reply: a base plus an allowance per byte of
+# payload (a commit of one chunk takes milliseconds; 8 MiB/s is far below what
+# compressing and writing a chunk costs even on a loaded box). A worker that
+# misses it is stopped or stalled: it is killed and its commit done in-process.
+WORKER_TIMEOUT_ENV = "TORCHRL_ROBOTMEM_WORKER_TIMEOUT"
+_REPLY_BASE = 5.0
+_REPLY_BYTES_PER_S = 8 * 2**20
+
+
+def reply_deadline(nbytes: int) -> float:
+    """Seconds to wait for the reply to a request carrying ``nbytes`` of payload.
+
+    ``TORCHRL_ROBOTMEM_WORKER_TIMEOUT`` (seconds) replaces the 5 s base.
+    """
+    base = float(os.environ.get(WORKER_TIMEOUT_ENV, _REPLY_BASE))
+    return base + nbytes / _REPLY_BYTES_PER_S
 
 
 # -- framing (both sides) ------------------------------------------------------------------
@@ -259,11 +283,32 @@ class CommitWorkerError(RuntimeError):
     """A request failed in the commit worker (the message carries its error)."""
 
 
+class CommitWorkerGone(CommitWorkerError):
+    """The worker died, stopped answering or could not start; it has been killed.
+
+    Nothing it was asked to write can be trusted to be on disk: the caller
+    writes it again in-process.
+    """
+
+
+def _exit_text(code: int | None) -> str:
+    if code is None:
+        return "still running"
+    if code < 0:
+        try:
+            return f"exit code {code}, killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"exit code {code}"
+    return f"exit code {code}"
+
+
 class CommitWorker:
     """The parent's handle on one commit worker process (shared by all its stores).
 
     Requests are serialised by a lock: each one is sent and answered before the
     next. ``get()`` starts the worker on first use; a forked child starts its own.
+    A worker that fails (see :class:`CommitWorkerGone`) is killed and marked
+    ``broken``; ``get()`` then starts a new one for the stores opened later.
     """
 
     _instance: CommitWorker | None = None
@@ -296,57 +341,98 @@ class CommitWorker:
 
         Until it has, stores commit in-process: a worker still importing zarr must
         not delay the first commits of a fresh process (a short-lived writer
-        would otherwise lose more on a kill).
+        would otherwise lose more on a kill). Raises :class:`CommitWorkerGone`
+        if it died while starting.
         """
         if self._ready:
             return True
         with self.lock:
+            if self.broken:
+                raise self._gone("was given up earlier")
             if not self._ready and select.select([self.sock], [], [], 0)[0]:
                 self._await_ready()
         return self._ready
 
+    def gone(self) -> bool:
+        """Whether the worker process has exited (and can write nothing more)."""
+        return self.proc.poll() is not None
+
     def _discard(self) -> None:
-        """Stops a worker whose channel is broken; the next request starts a new one."""
+        """Kills a worker whose channel is broken or silent; the next ``get()`` starts a new one.
+
+        ``SIGKILL`` also ends a stopped (``SIGSTOP``) process. Waits up to 5 s
+        for it to exit: only then can nothing it was writing land any more.
+        """
         self.broken = True
         try:
             self.proc.kill()
             self.proc.wait(5)
-        except Exception:  # noqa: BLE001 - already gone
+        except Exception:  # noqa: BLE001 - already gone, or stuck in the kernel (gone() says which)
+            pass
+        try:
+            self.sock.close()
+        except OSError:
             pass
 
+    def _gone(self, what: str) -> CommitWorkerGone:
+        return CommitWorkerGone(f"the commit worker process (pid {self.proc.pid}) {what} "
+                                f"({_exit_text(self.proc.poll())})")
+
     def _await_ready(self) -> None:
-        frame = read_frame(self.sock)
+        try:
+            self.sock.settimeout(reply_deadline(0))
+            frame = read_frame(self.sock)
+        except OSError:
+            frame = None
+        finally:
+            if not self.broken:
+                self.sock.settimeout(None)
         if frame is None or not frame[0].get("ready"):
-            raise CommitWorkerError(f"the commit worker process (pid {self.proc.pid}) failed to start "
-                                    f"(exit code {self.proc.poll()})")
+            self._discard()
+            raise self._gone("failed to start")
         self._ready = True
 
     def request(self, header: dict, payloads: list | tuple = (), fds: list | tuple = ()) -> None:
-        header = {**header, "nbytes": sum(memoryview(p).nbytes for p in payloads)}
+        """Sends one request and waits for its reply (at most :func:`reply_deadline` seconds).
+
+        Raises :class:`CommitWorkerError` with the worker's own error (the
+        request failed there, e.g. a full disk), or :class:`CommitWorkerGone`
+        (the worker is dead, silent or its channel broken: it has been killed).
+        """
+        nbytes = sum(memoryview(p).nbytes for p in payloads)
+        header = {**header, "nbytes": nbytes}
         with self.lock:
+            if self.broken:
+                raise self._gone("was given up earlier")
             if not self._ready:
                 self._await_ready()
+            if self.proc.poll() is not None:
+                self._discard()
+                raise self._gone("has exited")
+            timeout = reply_deadline(nbytes)
+            deadline = time.monotonic() + timeout
             try:
-                # never wait forever: a worker that stops answering is an error, not a hang
-                self.sock.settimeout(_REPLY_TIMEOUT)
+                # never wait long: a worker that stops answering is killed, not waited for
+                self.sock.settimeout(timeout)
                 write_frame(self.sock, header, payloads, fds)
+                self.sock.settimeout(max(0.01, deadline - time.monotonic()))
                 frame = read_frame(self.sock)
-            except OSError as err:  # socket.timeout included
-                frame, why = None, err
+            except TimeoutError:
+                self._discard()
+                raise self._gone(f"did not answer within {timeout:.1f} s (stopped, or its disk stalled); "
+                                 f"it was killed") from None
+            except OSError as err:
+                self._discard()
+                raise self._gone(f"is gone ({type(err).__name__}: {err})") from None
             except BaseException:  # e.g. KeyboardInterrupt mid-frame: the stream cannot be trusted
                 self._discard()
                 raise
-            else:
-                why = None
             finally:
-                self.sock.settimeout(None)
+                if not self.broken:
+                    self.sock.settimeout(None)
             if frame is None:
                 self._discard()
-                code = self.proc.poll()
-                raise CommitWorkerError(
-                    f"the commit worker process (pid {self.proc.pid}) is gone (exit code {code}"
-                    f"{'' if why is None else f'; {why}'}); rows not committed before are lost"
-                )
+                raise self._gone("is gone")
         reply = frame[0]
         if not reply.get("ok"):
             raise CommitWorkerError(str(reply.get("error")))

@@ -15,6 +15,14 @@ The engine reads rows through its owner (the storage): ``owner._copy_chunk(c)``
 (a snapshot taken under the lock), ``owner._chunk_arrays(snapshot)`` (outside it),
 ``owner._meta_snapshot()``, ``owner._len_along_dim0``, ``owner._max_dim0`` and
 ``owner._schema``. It writes nothing but Zarr.
+
+Nothing the process holds is lost to a failed commit: the chunks of a commit
+that fails are marked dirty again (the RAM mirror still holds their rows), the
+error is raised to the foreground, and the next ``flush()`` tries again. A
+commit worker that dies, stops answering or cannot start is killed and this
+engine commits in-process from then on (a warning says so, once): a journal
+the worker left pending is replayed first, then every row it had not
+confirmed is written again from RAM.
 """
 from __future__ import annotations
 
@@ -22,6 +30,7 @@ import asyncio
 import os
 import threading
 import time
+import warnings
 from typing import Any
 
 import numpy as np
@@ -29,7 +38,7 @@ import torch
 from zarr.core.sync import sync as zarr_sync
 
 from . import _backend
-from ._commit_worker import CommitWorker, CommitWorkerError
+from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
 
 __all__ = ["CommitEngine"]
 
@@ -71,14 +80,23 @@ class CommitEngine:
         self.arrays: dict[str, Any] = {}  # zarr arrays by path, opened once
         self.last_set_time = 0.0
         self.thread: threading.Thread | None = None
+        # the last commit's failure; its rows stay dirty and the next flush() retries them
         self.error: BaseException | None = None
         self.committed_len = 0  # committed length (transitions)
+        self.committed_write_count = 0  # write count of the last commit record
         self.worker_path = worker_path
+        self.worker_fault: str | None = None  # why this engine stopped using its worker
+        self._worker: CommitWorker | None = None  # the worker this store is open in
         self._worker_synced = False  # the worker drops what it cached of this store on our first request
         self._via_worker = False  # switched on (once) when the worker is ready; in-process until then
         self._route_lock = threading.RLock()
         if worker_path is not None:
             CommitWorker.get()  # start it now: its imports overlap the first rows being written
+
+    def set_committed(self, attrs: dict) -> None:
+        """Records the commit record found on disk (at open): ``len`` and ``write_count``."""
+        self.committed_len = int(attrs.get("len", 0))
+        self.committed_write_count = int(attrs.get("write_count", 0))
 
     # -- bookkeeping (called under ``cv``) ----------------------------------------
 
@@ -111,17 +129,22 @@ class CommitEngine:
         if self._via_worker or self.worker_path is None:
             return self._via_worker
         with self._route_lock:  # no in-process attribute write races the switch
-            if not self._via_worker and CommitWorker.get().ready():
-                self._worker_open()
-                self._via_worker = True
+            if not self._via_worker and self.worker_path is not None:
+                try:
+                    worker = CommitWorker.get()
+                    if worker.ready():
+                        self._worker = worker
+                        self._worker_open()
+                        self._via_worker = True
+                except CommitWorkerGone as err:
+                    self._fall_back(err)
         return self._via_worker
 
     def update_attrs(self, update: dict) -> None:
         """Writes store attributes; through the worker once it commits (so no update is lost)."""
         with self._route_lock:
-            if self._use_worker():
-                self._worker_request({"op": "attrs", "path": self.worker_path, "update": update})
-            else:
+            if not (self._use_worker()
+                    and self._worker_request({"op": "attrs", "path": self.worker_path, "update": update})):
                 self.group.update_attributes(update)
 
     def _worker_open(self) -> None:
@@ -132,25 +155,87 @@ class CommitEngine:
         """
         lock = getattr(self.owner, "_lock_file", None)
         fd = getattr(lock, "_fd", None)
-        CommitWorker.get().request({"op": "open", "path": self.worker_path}, fds=[fd] if fd is not None else [])
+        self._worker.request({"op": "open", "path": self.worker_path}, fds=[fd] if fd is not None else [])
         self._worker_synced = True
 
-    def _worker_request(self, header: dict, payloads: list | tuple = ()) -> None:
-        if not self._worker_synced:
-            self._worker_open()
-        CommitWorker.get().request(header, payloads)
+    def _worker_request(self, header: dict, payloads: list | tuple = ()) -> bool:
+        """Sends one request; ``False`` if the worker failed (it is killed: do the work in-process).
+
+        A failure *in* the worker (its reply carries an error, e.g. a full disk)
+        raises :class:`CommitWorkerError`.
+        """
+        try:
+            if not self._worker_synced:
+                self._worker_open()
+            self._worker.request(header, payloads)
+            return True
+        except CommitWorkerGone as err:
+            with self._route_lock:
+                self._fall_back(err)
+            return False
+
+    def _fall_back(self, err: CommitWorkerGone) -> None:
+        """Stops using the worker for good: warns once, then resyncs with what is on disk.
+
+        Called under ``_route_lock``. The worker is dead when this returns (or
+        an error is raised: a worker that survives ``SIGKILL``, stuck in the
+        kernel, could still write). What it may have left half-done is
+        completed here, as a reopen would: a pending journal is replayed, the
+        group's attributes are read again (the worker wrote them), and the
+        commit record it may have written counts as committed (so rows below it
+        are overwritten through the journal).
+        """
+        if self.worker_path is None:
+            return  # done already (by another thread's request)
+        worker = self._worker
+        if worker is not None and not worker.gone():
+            worker._discard()
+            if not worker.gone():
+                raise CommitWorkerError(
+                    f"the commit worker process (pid {worker.proc.pid}) did not exit after SIGKILL "
+                    f"(stuck in the kernel: a stalled disk?); nothing is written in-process until it has"
+                )
+        self.worker_fault = str(err)
+        self.worker_path = None
+        self._worker = None
+        self._via_worker = False
+        self._worker_synced = False
+        warnings.warn(
+            f"ZarrStorage {self.name!r}: {err}. Its commits are now written by this process (slower, "
+            f"nothing lost: every row the worker had not made durable is written again from memory); "
+            f"a store opened later starts a new worker.",
+            RuntimeWarning, stacklevel=2,
+        )
+        self._resync_from_disk()
+
+    def _resync_from_disk(self) -> None:
+        import zarr
+
+        from .integrity import writing_config
+
+        group = zarr.open_group(self.group.store, mode="r+", zarr_format=3)
+        attrs = group.attrs.asdict()
+        if attrs.get("journal"):
+            with writing_config():
+                attrs = self.replay_journal(group, attrs["journal"])
+        self.group = group
+        with self.cv:
+            self.committed_len = max(self.committed_len, int(attrs.get("len", 0)))
+            self.committed_write_count = max(self.committed_write_count, int(attrs.get("write_count", 0)))
+        for path in [p for p in self.arrays if p.startswith("_journal/")]:
+            del self.arrays[path]  # the worker may have recreated (or half-created) them
 
     def close(self) -> None:
         """Lets the worker forget this store (after the last commit); never starts one."""
         if self.worker_path is None or not self._worker_synced:
             return
         self._worker_synced = False
-        worker = CommitWorker._instance
-        if worker is None or worker.pid != os.getpid() or worker.proc.poll() is not None:
+        worker = self._worker
+        if worker is None or worker.pid != os.getpid() or worker.broken or worker.gone():
             return
         try:
             worker.request({"op": "close", "path": self.worker_path})
-        except Exception:  # noqa: BLE001 - closing: nothing left to write
+        except Exception:  # noqa: BLE001 - closing: nothing left to write (a silent worker is killed)
             pass
 
     # -- the writer thread ----------------------------------------------------------
@@ -212,7 +297,12 @@ class CommitEngine:
             self._commit(everything=flush or timer)
 
     def _commit(self, *, everything: bool) -> None:
-        """Writes dirty chunks (all of them, or only complete ones), then the metadata."""
+        """Writes dirty chunks (all of them, or only complete ones), then the metadata.
+
+        If the worker fails on the way (dead, silent), the engine falls back to
+        writing in-process and commits everything again; any other failure
+        leaves the chunks dirty and is raised to the foreground.
+        """
         owner = self.owner
         with self.cv:
             target = self.flush_req
@@ -224,8 +314,7 @@ class CommitEngine:
             everything = everything or overwrite
             chunks = sorted(self.dirty) if everything else sorted(self._complete_chunks())
             snapshots = {c: owner._copy_chunk(c) for c in chunks}
-            for c in chunks:
-                del self.dirty[c]
+            taken = {c: self.dirty.pop(c) for c in chunks}
             meta = owner._meta_snapshot() if everything else None
             if everything:
                 self.meta_dirty = False
@@ -247,12 +336,23 @@ class CommitEngine:
                         self.group.update_attributes(update)
             if via_worker:
                 self._commit_in_worker(snapshots, meta, overwrite)
+        except CommitWorkerGone as err:
+            # the worker may have written some of it, all of it, or a pending journal:
+            # mark it all dirty again and commit it (with the metadata) in-process
+            self._undo_take(taken)
+            try:
+                with self._route_lock:
+                    self._fall_back(err)
+            except BaseException as fail:
+                self._failed(fail, target)
+                if not self.background:
+                    raise
+                return
+            self._commit(everything=True)
+            return
         except BaseException as err:  # surfaced to the foreground on its next call
-            with self.cv:
-                self.inflight -= 1
-                self.error = err
-                self.flush_done = target
-                self.cv.notify_all()
+            self._undo_take(taken)
+            self._failed(err, target)
             if not self.background:
                 raise
             return
@@ -260,7 +360,24 @@ class CommitEngine:
             self.inflight -= 1
             if meta is not None:
                 self.committed_len = int(meta["len"])
+                self.committed_write_count = int(meta["write_count"])
                 self.flush_done = max(self.flush_done, target)
+            self.cv.notify_all()
+
+    def _undo_take(self, taken: dict[int, int]) -> None:
+        """A commit failed: its chunks and the metadata are dirty again (RAM still holds them)."""
+        with self.cv:
+            for c, lo in taken.items():
+                self.dirty[c] = min(self.dirty.get(c, lo), lo)
+            self.meta_dirty = True
+            if self.first_dirty_time is None:
+                self.first_dirty_time = time.monotonic()
+            self.inflight -= 1
+
+    def _failed(self, err: BaseException, target: int) -> None:
+        with self.cv:
+            self.error = err
+            self.flush_done = max(self.flush_done, target)
             self.cv.notify_all()
 
     def _commit_in_worker(self, snapshots: dict, meta: dict | None, overwrite: bool) -> None:
@@ -286,7 +403,9 @@ class CommitEngine:
                  _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).str]
                 for path, spec in owner._schema.items()
             ]
-        self._worker_request(header, [snap[0].numpy() for snap in snapshots.values()])
+        if not self._worker_synced:
+            self._worker_open()
+        self._worker.request(header, [snap[0].numpy() for snap in snapshots.values()])  # may raise CommitWorkerGone
 
     def _array(self, path: str) -> Any:
         arr = self.arrays.get(path)
@@ -361,13 +480,21 @@ class CommitEngine:
         return bool(self.dirty or self.meta_dirty or self.inflight) or self.flush_done < self.flush_req
 
     def flush(self) -> None:
-        """Blocks until everything marked dirty so far is durable and committed."""
+        """Blocks until everything marked dirty so far is durable and committed.
+
+        After a failed commit this is the retry: the rows it could not write
+        are still dirty, and are written now if the cause is gone.
+        """
         if not self.background:
+            with self.cv:
+                self.error = None
             if self.dirty or self.meta_dirty:
                 self._commit(everything=True)
             self.raise_error()
             return
         with self.cv:
+            if self.error is not None and self.inflight == 0:
+                self.error = None  # retry: the failed commit's rows are dirty again
             if not self.pending():
                 self.raise_error()
                 return
@@ -381,13 +508,35 @@ class CommitEngine:
                 self.cv.wait(0.5)
         self.raise_error()
 
-    def raise_error(self) -> None:
+    def not_durable(self) -> str:
+        """Which rows the store would lose now: ``"N rows (write numbers A to B)"`` and in-place changes."""
+        owner = self.owner
+        with self.cv:
+            written = int(owner._meta_snapshot()["write_count"])
+            committed = self.committed_write_count
+            in_place = sorted(c for c, lo in self.dirty.items() if lo < owner._dim0(self.committed_len))
+            rows = owner._chunk_rows or 0
+        first = max(committed, written - owner.max_size)  # older writes were overwritten in RAM by the ring
+        if written > first:
+            where = (f"at storage index write number % {owner.max_size}" if written > owner.max_size
+                     else "the same storage indices")
+            return f"{written - first} rows (write numbers {first} to {written - 1}, {where})"
+        if in_place:
+            return "in-place changes to the stored rows " + ", ".join(
+                f"{c * rows} to {(c + 1) * rows - 1}" for c in in_place)
+        return "no rows"
+
+    def raise_error(self, *, closing: bool = False) -> None:
+        """Raises the last commit failure, saying which rows are not durable (or lost, when closing)."""
         err = self.error
         if err is not None:
             # a commit worker's error already reads "<its type>: <message>"
             what = str(err) if isinstance(err, CommitWorkerError) else f"{type(err).__name__}: {err}"
-            raise RuntimeError(
-                f"The background writer of {self.name!r} failed: {what}. "
-                f"Rows written after the last commit ({self.committed_len} rows) are not "
-                f"durable; fix the cause (disk space, permissions) and reopen the store."
-            ) from err
+            if closing:
+                advice = (f"{self.not_durable()} could not be written and are lost: this handle is closed. "
+                          f"Fix the cause (disk space, permissions) and write them again")
+            else:
+                advice = (f"{self.not_durable()} are not durable: they are kept in memory. Fix the cause "
+                          f"(disk space, permissions), then call flush() on this storage (or close() it, or "
+                          f"open ZarrStorage on the same path again) to write them")
+            raise RuntimeError(f"The background writer of {self.name!r} failed: {what}. {advice}.") from err

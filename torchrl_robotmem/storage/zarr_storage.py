@@ -33,7 +33,7 @@ from ._backend import FORMAT_MARKER, FORMAT_VERSION
 from .checkpointer import ZarrCheckpointer
 from .commit import CommitEngine
 from .schema import DataKind, PackedLayout, check_against, env_names_of, spec_of, split_constants, with_constants
-from .tags import TAG_KEYS, UNKNOWN_ENV, EpisodeTagger, open_episode_ends
+from .tags import TAG_KEYS, UNKNOWN_ENV, EpisodeTagger, check_user_keys, check_user_tag, open_episode_ends
 
 __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
 
@@ -205,7 +205,11 @@ class ZarrStorage(LazyTensorStorage):
         self._retired_by: str | None = None
         # what storage.get() (hence rb.sample()) leaves out: the tags, unless asked for
         self._hidden = () if sample_tags else TAG_KEYS
-        previous = self._claim_writer() if not self.read_only else None
+        try:
+            previous = self._claim_writer() if not self.read_only else None
+        except BaseException:
+            self._closed = True  # never registered: the writer stays with the earlier handle
+            raise
         try:
             self._open(max_size, env=env, ndim=int(ndim), chunk_rows=chunk_rows, device=device,
                        compilable=compilable, commit_interval=commit_interval, background=background)
@@ -276,8 +280,9 @@ class ZarrStorage(LazyTensorStorage):
 
     def _check_format(self, attrs: dict) -> None:
         marker = attrs.get(FORMAT_MARKER)
-        if not isinstance(marker, dict) or "format_version" not in marker:
-            raise ValueError(f"{self.path!r} has a malformed {FORMAT_MARKER!r} attribute.")
+        version = marker.get("format_version") if isinstance(marker, dict) else None
+        if not isinstance(version, int) or isinstance(version, bool):
+            raise ValueError(f"{self.path!r} has a malformed {FORMAT_MARKER!r} attribute (format_version {version!r}).")
         if int(marker["format_version"]) > FORMAT_VERSION:
             raise ValueError(
                 f"{self.path!r} was written in format version {marker['format_version']} by "
@@ -337,7 +342,7 @@ class ZarrStorage(LazyTensorStorage):
         self._runs = int(attrs.get("runs", 0))
         self._write_count = int(attrs.get("write_count", 0))
         self._writer_cursor = int(attrs.get("cursor", 0))
-        self._engine.committed_len = int(attrs.get("len", 0))
+        self._engine.set_committed(attrs)
         self._index_schema()
 
     def _index_schema(self) -> None:
@@ -379,10 +384,11 @@ class ZarrStorage(LazyTensorStorage):
         key = str(self.path)
         ref = _OPEN_WRITERS.get(key)
         other = ref() if ref is not None else None
+        if other is not None and (other._closed or other.read_only):
+            other = None
+        if other is not None:
+            other._hand_over_writer()  # raises if it cannot write its rows: it keeps them, and the writer
         _OPEN_WRITERS[key] = weakref.ref(self)
-        if other is None or other._closed or other.read_only:
-            return None
-        other._hand_over_writer()
         return other
 
     def _hand_over_writer(self) -> None:
@@ -454,6 +460,11 @@ class ZarrStorage(LazyTensorStorage):
                 self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
         if self.read_only and n0:
             self._reread_overwritten(record, n0)
+        if n0:
+            # Zarr reads a chunk file that is gone as zeros: one moved away since the open's
+            # listing (by `robotmem repair`) is an error here, never zero rows served
+            n = self._check_read(attrs if not self.read_only else {**record, "len": min(n, int(record.get("len", 0)))}, n)
+            n0 = self._dim0(n)
         self.initialized = True
         self._len = n
         last = int(attrs.get("last_cursor", -1))
@@ -466,6 +477,23 @@ class ZarrStorage(LazyTensorStorage):
             self._runs = max(self._runs, int(self._views.get("run")[:n0].max()) + 1)
         with self._own_write():
             self._bump_mutation_revision()
+
+    def _check_read(self, attrs: dict, n: int) -> int:
+        """Lists the chunk files below ``attrs["len"]`` again, after the rows were read; returns the rows to keep.
+
+        A chunk missing now was read as zeros: an :class:`IntegrityError` naming it
+        (``on_damage="warn"``: a warning, and only the rows before it are kept).
+        """
+        problems = integrity.missing_after_read(self._group, attrs, store=self._store, local_dir=self._local_dir)
+        if not problems:
+            return n
+        action = "A chunk file disappeared while the rows were read (is `robotmem repair` running?); no row was served."
+        if not (self.read_only and self._on_damage == "warn"):
+            raise integrity.IntegrityError(self.path, problems, read_only=self.read_only, action=action)
+        cut = min(p.rows[0] for p in problems)
+        warnings.warn(f"{integrity.IntegrityError(self.path, problems, action='')}\non_damage='warn': reading the "
+                      f"{cut} rows before the first missing chunk.", stacklevel=4)
+        return min(n, cut * self._inner_numel)
 
     def _reread_overwritten(self, record: dict, n0: int) -> None:
         """Reads again, chunk by chunk, the rows a writer may have overwritten during a reader's load.
@@ -838,8 +866,10 @@ class ZarrStorage(LazyTensorStorage):
             else:
                 episode = torch.full(lead, -1, dtype=torch.long)
                 run = torch.full(lead, -1, dtype=torch.long)
-        for key in TAG_KEYS:
-            td.pop(key, None)
+        for key in TAG_KEYS:  # env codes / names are input; episode and run are drawn here (reserved names)
+            value = td.pop(key, None)
+            if value is not None and not (tags and key == "env"):
+                check_user_tag(key, value, episode if key == "episode" else run if key == "run" else None)
         fast = self._matches_schema(td)  # the hot path: the keys, dtypes and shapes the store holds, no more
         new_constants = {} if fast else self._check_constants(split_constants(td))
         new_paths = [] if fast else self._validate(td, single)
@@ -931,6 +961,7 @@ class ZarrStorage(LazyTensorStorage):
         """Raises, naming the key, on a dtype / shape change; returns the paths of new keys."""
         if self._matches_schema(data):
             return []
+        check_user_keys(data.keys(include_nested=True), allowed=(DataKind.TENSOR_KEY, DataKind.PYTREE_KEY))
         if self._schema is None:
             for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
                 if not isinstance(value, torch.Tensor):
@@ -1156,12 +1187,20 @@ class ZarrStorage(LazyTensorStorage):
 
         Closing is optional: every writable store is also flushed when the
         process exits (end of script, exception, Ctrl-C) or receives SIGTERM.
+        If the last rows cannot be written (a full disk), the handle is closed
+        all the same and the error says how many rows, and which, are lost;
+        call :meth:`flush` first to keep them while the cause is fixed.
         """
         if self._closed:
             return
         try:
             with lifecycle.critical():
                 self.flush()
+        except Exception:
+            engine = getattr(self, "_engine", None)
+            if engine is not None:
+                engine.raise_error(closing=True)  # says which rows are lost
+            raise
         finally:
             self._release()
 
@@ -1197,17 +1236,37 @@ class ZarrStorage(LazyTensorStorage):
             pass
 
     def refresh(self) -> int:
-        """Re-reads a store opened ``read_only`` to see rows committed since. Returns ``len``."""
+        """Re-reads a store opened ``read_only`` to see rows committed since. Returns ``len``.
+
+        Runs the checks an open runs (a commit record pointing past the written
+        rows, a missing or corrupt chunk: an :class:`IntegrityError`, and the
+        handle keeps the rows it had). A store the writer grew (reopened with a
+        larger ``max_size``) is read at its new size.
+        """
         if not self.read_only:
             return len(self)
-        self._group = _backend.open_group(self._store, read_only=True)
-        self._engine.group = self._group
-        attrs = self._group.attrs.asdict()
-        if attrs.get("schema") is None:
-            return 0
-        self._sync_attrs(attrs)
-        self.initialized = False
-        self._load_rows(attrs)
+        saved = dict(self.__dict__)
+        engine_state = {k: v for k, v in vars(self._engine).items() if k in ("group", "committed_len", "committed_write_count")}
+        try:
+            group = _backend.open_group(self._store, read_only=True)
+            attrs = group.attrs.asdict()
+            self._check_format(attrs)
+            attrs = integrity.check_open(group, attrs, store=self._store, local_dir=self._local_dir, path=self.path,
+                                         read_only=True, on_damage=self._on_damage)
+            if attrs.get("schema") is None:
+                return 0
+            self._group = self._engine.group = group
+            if int(attrs["max_size"]) != self.max_size:  # the writer grew the store
+                self.max_size = int(attrs["max_size"])
+                self.__dict__.pop("_total_shape_value", None)
+            self._sync_attrs(attrs)
+            self.initialized = False
+            self._load_rows(attrs)
+        except BaseException:
+            # a failed refresh leaves the handle as it was (its rows, its length)
+            self.__dict__.update(saved)
+            vars(self._engine).update(engine_state)
+            raise
         return len(self)
 
     # -- state -----------------------------------------------------------------------------------
