@@ -64,6 +64,13 @@ ARRAY_CONFIG = {"write_empty_chunks": True}
 _TAGS = ("episode", "run", "env")
 _KINDS = ("tensordict", "tensor", "pytree", "tensorclass")
 _BACKUP_DIR = "_repair_backup"
+#: top-level names of the store's own folders: no stored array path may start with one
+_RESERVED = ("_journal", _BACKUP_DIR)
+#: what a pending journal's ``meta`` may set (a commit's length, cursor and counters), never the structure
+_STRUCTURE = (_backend.FORMAT_MARKER, "max_size", "ndim", "inner_shape", "chunk_rows", "schema", "kind",
+              "constants", "journal")
+#: missing chunks listed one by one per array; the rest are counted in one problem
+_LISTED = 8
 _HINT = "Run `robotmem verify {path}` for a full report and `robotmem repair {path}` to make it writable again."
 
 
@@ -77,7 +84,8 @@ class Problem:
     Args:
         kind (str): ``"missing_chunk"``, ``"checksum"``, ``"undecodable"`` (a chunk),
             ``"metadata"`` (a ``zarr.json``), ``"attribute"`` (the commit record),
-            ``"format"`` (a newer format) or ``"journal"``.
+            ``"format"`` (a newer format), ``"journal"`` (a pending journal that cannot be
+            replayed as it is) or ``"capacity"`` (sizes no machine here can hold).
         what (str): what is wrong, in words.
         array (str, optional): the array path (``"next/observation"``).
         chunk (int, optional): the chunk index along the rows.
@@ -171,7 +179,8 @@ class RepairReport:
 class IntegrityError(ValueError):
     """A store is damaged; ``problems`` lists what was found. Nothing was written to it."""
 
-    def __init__(self, path: Any, problems: list[Problem], *, read_only: bool = True, action: str | None = None):
+    def __init__(self, path: Any, problems: list[Problem], *, read_only: bool = True, action: str | None = None,
+                 hint: str | None = None):
         self.path = path
         self.problems = list(problems)
         errors = [p for p in self.problems if p.severity == "error"] or self.problems
@@ -182,9 +191,10 @@ class IntegrityError(ValueError):
         if action is None:
             action = ("Nothing was changed." if read_only else
                       "Refusing to open it for writing; nothing was changed.")
-        hint = _HINT.format(path=path)
-        if read_only:
-            hint += " ZarrStorage(path, read_only=True, on_damage='warn') reads the intact rows."
+        if hint is None:
+            hint = _HINT.format(path=path)
+            if read_only:
+                hint += " ZarrStorage(path, read_only=True, on_damage='warn') reads the intact rows."
         lines.append(f"{action} {hint}")
         super().__init__("\n".join(lines))
 
@@ -205,6 +215,39 @@ def is_strict(attrs: dict) -> bool:
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
+
+
+def unsafe_path(path: Any) -> str | None:
+    """Why an array path read from a store would leave the store or land on its own files (``None``: safe).
+
+    Stored paths (schema keys, ``next/observation``) become file paths under the
+    store: ``..``, absolute paths, backslashes, empty components, control
+    characters and the store's own folders (``_journal``, ``_repair_backup``) are
+    refused wherever a path read from a store is used.
+
+    Example:
+        >>> unsafe_path("next/observation") is None, unsafe_path("../other.zarr/observation")
+        (True, "component '..' leaves the folder")
+    """
+    if not isinstance(path, str) or not path:
+        return "not a non-empty string"
+    if path.startswith("/"):
+        return "an absolute path"
+    if "\\" in path:
+        return "a backslash (a path separator on Windows)"
+    if any(ord(ch) < 32 or ord(ch) == 127 for ch in path):
+        return "a control character"
+    parts = path.split("/")
+    for part in parts:
+        if not part:
+            return "an empty component"
+        if part in (".", ".."):
+            return f"component {part!r} leaves the folder"
+        if part == "zarr.json":
+            return "a component named 'zarr.json' (a metadata file)"
+    if parts[0] in _RESERVED:
+        return f"the store's own folder {parts[0]!r}"
+    return None
 
 
 def check_attributes(attrs: dict) -> list[Problem]:
@@ -248,8 +291,12 @@ def check_attributes(attrs: dict) -> list[Problem]:
             bad("schema", f"must map array paths to {{dtype, shape}}, got {type(schema).__name__}")
         else:
             for path, spec in schema.items():
+                why = unsafe_path(path)
+                if why is not None:
+                    bad("schema", f"key {path!r} is not a path inside the store ({why})")
+                    continue
                 ok = (isinstance(spec, dict) and isinstance(spec.get("dtype"), str) and isinstance(spec.get("shape"), list)
-                      and all(_is_int(x) and x >= 0 for x in spec["shape"]) and all(path.split("/")))
+                      and all(_is_int(x) and x >= 0 for x in spec["shape"]))
                 if ok:
                     try:
                         _backend.torch_dtype(spec["dtype"])
@@ -280,11 +327,35 @@ def check_attributes(attrs: dict) -> list[Problem]:
     env = attrs.get("env")
     if env is not None and not isinstance(env, str):
         bad("env", f"must be a name or null, got {env!r}")
+    if (schema is not None and isinstance(inner, list) and _is_int(attrs.get("ndim", 1))
+            and attrs.get("ndim", 1) - 1 > len(inner)):
+        bad("ndim", f"is {attrs.get('ndim')}, but 'inner_shape' {inner} has only {len(inner)} dimensions")
     journal = attrs.get("journal")
     if journal is not None and not (isinstance(journal, dict) and isinstance(journal.get("meta"), dict)
                                     and isinstance(journal.get("chunks"), list)
                                     and all(_is_int(c) and c >= 0 for c in journal["chunks"])):
         bad("journal", f"is malformed ({str(journal)[:80]})")
+    elif journal and not out:
+        out += _journal_record_problems(attrs, journal)
+    return out
+
+
+def _journal_record_problems(attrs: dict, journal: dict) -> list[Problem]:
+    """A pending journal's own record: what its replay would commit must be a sane commit record too."""
+    def bad(what, **kw):
+        return Problem("journal", f"the pending journal {what}; replaying it would commit that", key="zarr.json", **kw)
+
+    meta = journal["meta"]
+    structural = sorted(set(meta) & set(_STRUCTURE))
+    if structural:
+        return [bad(f"rewrites {structural} (a journal records a commit's length, cursor and counters only)")]
+    out = [bad(f"records {p.what}") for p in check_attributes({**attrs, **meta, "journal": None})]
+    if out or not attrs.get("schema"):
+        return out
+    chunks = journal["chunks"]
+    nchunks = -(-_dims(attrs)[0] // int(attrs["chunk_rows"]))
+    if len(set(chunks)) != len(chunks) or any(c >= nchunks for c in chunks):
+        out.append(bad(f"names chunks {sorted(chunks)[:8]} (the arrays have chunks 0..{nchunks - 1}, each once)"))
     return out
 
 
@@ -324,19 +395,19 @@ def _list_keys(store: Any, local_dir: Any, prefix: str) -> set[str]:
 
 
 def check_arrays(get_array, attrs: dict, *, store: Any, local_dir: Any, list_chunks: bool = True,
-                 skip: tuple = ()) -> tuple[list[Problem], dict]:
+                 skip: tuple = (), present: dict | None = None) -> tuple[list[Problem], dict]:
     """Array metadata against the schema, and chunk presence below the committed length.
 
     ``get_array(path)`` opens an array (raising if its metadata is unreadable).
     Returns ``(problems, arrays)`` with the arrays that opened and match the schema.
+    ``present``, if given, receives ``{path: chunk indices (along the rows) that have files}``.
     """
     problems: list[Problem] = []
     arrays: dict[str, Any] = {}
     schema = attrs.get("schema")
     if not schema:
         return problems, arrays
-    max_dim0, n0, inner = _dims(attrs)
-    chunk_rows = int(attrs["chunk_rows"])
+    _, n0, _ = _dims(attrs)
     for path, spec in schema.items():
         if path in skip:
             continue
@@ -349,53 +420,150 @@ def check_arrays(get_array, attrs: dict, *, store: Any, local_dir: Any, list_chu
             problems.append(Problem("metadata", f"array metadata unreadable ({type(err).__name__}: {str(err)[:100]})",
                                     array=path, key=f"{path}/zarr.json"))
             continue
-        want_dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
-        want_tail = (*inner, *spec["shape"])
-        chunks = arr.metadata.chunk_grid.chunk_shape if hasattr(arr.metadata, "chunk_grid") else arr.chunks
-        if (not isinstance(arr, zarr.Array) or np.dtype(arr.dtype) != want_dtype or tuple(arr.shape[1:]) != want_tail
-                or arr.shape[0] < max_dim0 or chunks[0] != chunk_rows):
-            problems.append(Problem(
-                "metadata", f"array is {np.dtype(arr.dtype)} {list(arr.shape)} chunked {list(chunks)}, but the "
-                f"schema records {want_dtype} [{max_dim0}, {', '.join(map(str, want_tail))}] in chunks of {chunk_rows} rows",
-                array=path, key=f"{path}/zarr.json"))
+        found = _disagreement(arr, path, spec, attrs)
+        if found is not None:
+            problems.append(found)
             continue
         arrays[path] = arr
     if list_chunks and n0:
-        problems += _missing_chunks(arrays, attrs, store=store, local_dir=local_dir)
+        problems += _missing_chunks(arrays, attrs, store=store, local_dir=local_dir, present=present)
     return problems, arrays
 
 
-def _missing_chunks(arrays: dict, attrs: dict, *, store: Any, local_dir: Any) -> list[Problem]:
+def _disagreement(arr: Any, path: str, spec: dict, attrs: dict) -> Problem | None:
+    """Where an array's own ``zarr.json`` and the commit record's schema disagree, a problem naming both."""
+    max_dim0, _, inner = _dims(attrs)
+    chunk_rows = int(attrs["chunk_rows"])
+    want_dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
+    want_tail = (*inner, *spec["shape"])
+    chunks = arr.metadata.chunk_grid.chunk_shape if hasattr(arr.metadata, "chunk_grid") else arr.chunks
+    if not isinstance(arr, zarr.Array):
+        return Problem("metadata", "is not an array", array=path, key=f"{path}/zarr.json")
+    if (np.dtype(arr.dtype) == want_dtype and tuple(arr.shape[1:]) == want_tail and arr.shape[0] >= max_dim0
+            and chunks[0] == chunk_rows and tuple(chunks[1:]) == tuple(arr.shape[1:])):
+        return None
+    if np.dtype(arr.dtype) == want_dtype and tuple(arr.shape[1:]) == want_tail and arr.shape[0] < max_dim0:
+        return Problem("metadata", f"{path}/zarr.json holds {arr.shape[0]} rows, but attribute 'max_size' "
+                       f"({attrs['max_size']}) claims {max_dim0}", array=path, key=f"{path}/zarr.json")
+    return Problem(
+        "metadata", f"array is {np.dtype(arr.dtype)} {list(arr.shape)} chunked {list(chunks)} ({path}/zarr.json), "
+        f"but the schema (attribute 'schema' of zarr.json) records {want_dtype} "
+        f"[{max_dim0}, {', '.join(map(str, want_tail))}] in chunks of {chunk_rows} rows",
+        array=path, key=f"{path}/zarr.json")
+
+
+def _row_chunk_key(arr: Any, path: str) -> tuple[str, str]:
+    """``(head, tail)``: chunk ``c`` along the rows of ``arr`` is stored at key ``head + str(c) + tail``.
+
+    Arrays of this library have one chunk across every other dimension (checked
+    by :func:`check_arrays`), so each row chunk is one file.
+    """
+    probe = 987654321
+    head, _, tail = f"{path}/{arr.metadata.encode_chunk_key((probe, *([0] * (arr.ndim - 1))))}".partition(str(probe))
+    return head, tail
+
+
+def present_chunks(arrays: dict, *, store: Any, local_dir: Any) -> dict[str, set[int]]:
+    """``{path: indices of the row chunks that have a file}``, one listing per array."""
+    out = {}
+    for path, arr in arrays.items():
+        head, tail = _row_chunk_key(arr, path)
+        found = set()
+        for key in _list_keys(store, local_dir, path):
+            if key.startswith(head) and key.endswith(tail):
+                mid = key[len(head): len(key) - len(tail)]
+                if mid.isdigit():
+                    found.add(int(mid))
+        out[path] = found
+    return out
+
+
+def _first_missing(present: set[int], n: int, k: int) -> list[int]:
+    """The first ``k`` indices below ``n`` not in ``present``: ``len(present) + k`` steps at most."""
+    out, c = [], 0
+    while c < n and len(out) < k:
+        if c not in present:
+            out.append(c)
+        c += 1
+    return out
+
+
+def _missing_chunks(arrays: dict, attrs: dict, *, store: Any, local_dir: Any, present: dict | None = None) -> list[Problem]:
+    """Chunks below the committed length without a file.
+
+    Costs in proportion to the chunk files that exist, not to what ``len``
+    claims: the first missing chunks of each array are listed, the rest counted.
+    """
     _, n0, _ = _dims(attrs)
     chunk_rows = int(attrs["chunk_rows"])
     nchunks = -(-n0 // chunk_rows)
-    missing: dict[str, list[tuple[int, str]]] = {}
-    for path, arr in arrays.items():
-        if 0 in arr.shape[1:]:
-            continue  # an array of empty rows has no chunks
-        present = _list_keys(store, local_dir, path)
-        for c in range(nchunks):
-            for key in _chunk_keys(arr, path, c):
-                if key not in present:
-                    missing.setdefault(path, []).append((c, key))
-                    break
+    counted = {p: arr for p, arr in arrays.items() if 0 not in arr.shape[1:]}  # arrays of empty rows have no chunks
+    have = present_chunks(counted, store=store, local_dir=local_dir)
+    if present is not None:
+        present.update(have)
+
+    def rows(c):
+        return (c * chunk_rows, min((c + 1) * chunk_rows, n0))
+
+    def listed(path, arr, found, what):
+        cs = _first_missing(found, nchunks, _LISTED + 1)
+        out = [Problem("missing_chunk", what, array=path, chunk=c, key=_chunk_keys(arr, path, c)[0], rows=rows(c))
+               for c in cs[:_LISTED]]
+        if len(cs) > _LISTED:
+            out.append(Problem("missing_chunk", f"{nchunks - len(found) - _LISTED} more chunk files missing: the "
+                               f"committed length ({attrs.get('len')} rows) spans {nchunks} chunks, {len(found)} exist",
+                               array=path, rows=(rows(cs[-1])[0], n0)))
+        return out
+
+    have_below = {p: {c for c in cs if c < nchunks} for p, cs in have.items()}
     if is_strict(attrs):
-        return [Problem("missing_chunk", "chunk file missing", array=p, chunk=c, key=k,
-                        rows=(c * chunk_rows, min((c + 1) * chunk_rows, n0)))
-                for p, items in missing.items() for c, k in items]
-    # a store created before empty chunks were written: an all-zero chunk has no file
-    counted = [p for p, arr in arrays.items() if 0 not in arr.shape[1:]]
-    everywhere = set.intersection(*[{c for c, _ in missing.get(p, [])} for p in counted]) if counted else set()
-    out = [Problem("missing_chunk", "chunk file missing from every array", array=p, chunk=c, key=k,
-                   rows=(c * chunk_rows, min((c + 1) * chunk_rows, n0)))
-           for p, items in missing.items() for c, k in items if c in everywhere]
-    for p, items in missing.items():
-        rest = [c for c, _ in items if c not in everywhere]
+        out = []
+        for p, arr in counted.items():
+            if len(have_below[p]) < nchunks:
+                out += listed(p, arr, have_below[p], "chunk file missing")
+        return out
+    # a store created before empty chunks were written: an all-zero chunk has no file,
+    # so only a chunk missing from every array is damage
+    if not counted:
+        return []
+    union = set().union(*have_below.values())
+    out = []
+    if len(union) < nchunks:
+        for p, arr in counted.items():
+            out += listed(p, arr, union, "chunk file missing from every array")
+    for p in counted:
+        rest = sorted(union - have_below[p])
         if rest:
             out.append(Problem("missing_chunk", f"{len(rest)} chunk file(s) absent ({rest[:6]}...): read as zeros; this "
                                f"store predates written empty chunks, so an all-zero chunk cannot be told from a "
                                f"deleted one", array=p, severity="warning"))
     return out
+
+
+def missing_after_read(group: Any, attrs: dict, *, store: Any, local_dir: Any) -> list[Problem]:
+    """Chunks below the committed length of ``attrs`` that have no file *now* (listed again after a read).
+
+    Zarr reads a chunk file that is gone as zeros. The open lists the chunk files
+    before reading; a chunk moved away between that listing and the read (by
+    ``repair``, a copy, a user) would be served as zeros. Listing again after the
+    read catches it: a chunk present before and after the read was read from
+    its file (chunk files are replaced atomically, never removed, by writers).
+
+    Args:
+        group: the store's Zarr group.
+        attrs: the attributes the rows were read with (``len``, ``schema``, ...).
+
+    Keyword Args:
+        store: the Zarr store; local_dir: its directory (``None`` for other stores).
+
+    Returns:
+        The missing chunks as :class:`Problem` s (errors; warnings for stores of
+        the format that did not write all-zero chunks).
+    """
+    if not attrs.get("schema") or not _dims(attrs)[1]:
+        return []
+    arrays = {p: group[p] for p in attrs["schema"]}
+    return [p for p in _missing_chunks(arrays, attrs, store=store, local_dir=local_dir) if p.severity == "error"]
 
 
 def _read_error(err: BaseException) -> tuple[str, str]:
@@ -405,11 +573,18 @@ def _read_error(err: BaseException) -> tuple[str, str]:
     return "undecodable", f"chunk does not decode ({type(err).__name__}: {msg[:90]}): truncated or overwritten"
 
 
-def decode_chunks(arr: Any, path: str, n0: int, chunk_rows: int) -> tuple[list[Problem], int]:
-    """Reads every chunk of ``arr`` below row ``n0`` one by one; ``(problems, chunks read)``."""
+def decode_chunks(arr: Any, path: str, n0: int, chunk_rows: int,
+                  present: set[int] | None = None) -> tuple[list[Problem], int]:
+    """Reads every chunk of ``arr`` below row ``n0`` one by one; ``(problems, chunks read)``.
+
+    With ``present`` (the chunk indices that have a file), only those are read:
+    a missing one is reported by the listing, and a ``len`` claiming more rows
+    than exist costs nothing.
+    """
     problems = []
     nchunks = -(-n0 // chunk_rows)
-    for c in range(nchunks):
+    todo = range(nchunks) if present is None else sorted(c for c in present if c < nchunks)
+    for c in todo:
         lo, hi = c * chunk_rows, min((c + 1) * chunk_rows, arr.shape[0])
         try:
             arr[lo:hi]
@@ -417,7 +592,7 @@ def decode_chunks(arr: Any, path: str, n0: int, chunk_rows: int) -> tuple[list[P
             kind, what = _read_error(err)
             problems.append(Problem(kind, what, array=path, chunk=c, key=_chunk_keys(arr, path, c)[0],
                                     rows=(lo, min(hi, n0))))
-    return problems, nchunks
+    return problems, len(todo)
 
 
 def read_error(arr: Any, path: str, n0: int, chunk_rows: int, err: BaseException, store_path: Any,
@@ -428,6 +603,127 @@ def read_error(arr: Any, path: str, n0: int, chunk_rows: int, err: BaseException
         kind, what = _read_error(err)
         problems = [Problem(kind, what, array=path)]
     return IntegrityError(store_path, problems, read_only=read_only)
+
+
+def check_journal(get_array, attrs: dict, arrays: dict, present: dict | None) -> list[Problem]:
+    """A pending journal against the arrays: what its replay would read and commit must exist as recorded.
+
+    The journal's arrays must have the dtype and row shape the schema records
+    (a replay would cast them silently otherwise), and every row below the
+    journal's ``len`` must be in a journalled chunk or already in the arrays
+    (a replay would commit zeros otherwise). ``arrays`` are the store's arrays
+    that match the schema; ``present`` the chunk files of each (see
+    :func:`present_chunks`), if listed.
+    """
+    journal = attrs.get("journal")
+    if not journal or not attrs.get("schema"):
+        return []
+    out = []
+    rows = int(attrs["chunk_rows"])
+    max_dim0, n0, inner = _dims(attrs)
+    meta_n0 = _dims({**attrs, **journal["meta"]})[1]
+    chunks = set(journal["chunks"])
+    if meta_n0 > n0 and present:
+        sets = list(present.values())
+        on_disk = set.intersection(*sets) if is_strict(attrs) else set.union(*sets)
+        first, last = n0 // rows, -(-meta_n0 // rows)
+        covered = {c - first for c in chunks | on_disk if first <= c < last}
+        gap = _first_missing(covered, last - first, 1)
+        if gap:
+            c = gap[0] + first
+            out.append(Problem(
+                "journal", f"the pending journal's 'len' ({journal['meta'].get('len')}) claims rows that neither "
+                f"the journal (chunks {sorted(chunks)[:8]}) nor the arrays hold; replaying it would serve them as zeros",
+                chunk=c, rows=(c * rows, min((c + 1) * rows, meta_n0)), key="zarr.json"))
+    top = (max(chunks) + 1) * rows if chunks else 0
+    for p, spec in attrs["schema"].items():
+        jp = f"_journal/{p}"
+        try:
+            jarr = get_array(jp)
+        except Exception as err:  # noqa: BLE001 - missing or unreadable: the finding
+            out.append(Problem("journal", f"journal array missing or unreadable ({type(err).__name__})",
+                               array=jp, key=f"{jp}/zarr.json"))
+            continue
+        want_dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
+        want_tail = (*inner, *spec["shape"])
+        size = arrays[p].shape[0] if p in arrays else max_dim0
+        if (not isinstance(jarr, zarr.Array) or np.dtype(jarr.dtype) != want_dtype
+                or tuple(jarr.shape[1:]) != want_tail or jarr.shape[0] < min(size, top)):
+            out.append(Problem(
+                "journal", f"journal array is {np.dtype(jarr.dtype)} {list(jarr.shape)} ({jp}/zarr.json), but the "
+                f"schema records {want_dtype} [{max_dim0}, {', '.join(map(str, want_tail))}]: replaying it would "
+                f"cast or misplace the rows of {p!r}", array=jp, key=f"{jp}/zarr.json"))
+    return out
+
+
+# -- what a store's sizes cost --------------------------------------------------------------
+
+
+def _memory_limit() -> int | None:
+    """Bytes this process could ever allocate: RAM + swap, or its address-space / data limit if lower."""
+    limit = None
+    try:
+        limit = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("SwapTotal:"):
+                    limit += int(line.split()[1]) * 1024
+    except (ValueError, OSError, AttributeError):
+        pass
+    try:
+        import resource
+
+        for which in (resource.RLIMIT_AS, resource.RLIMIT_DATA):
+            soft = resource.getrlimit(which)[0]
+            if soft != resource.RLIM_INFINITY and soft > 0:
+                limit = soft if limit is None else min(limit, soft)
+    except (ImportError, OSError, ValueError):
+        pass
+    return limit
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if n < 1000 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n} B"
+
+
+def capacity_problem(attrs: dict, *, mirror: bool = True) -> Problem | None:
+    """Sizes of sane attributes that no process here could hold, as a problem naming the field; else ``None``.
+
+    ``mirror``: the RAM mirror a ``ZarrStorage`` allocates (``max_size`` rows);
+    otherwise one chunk (what ``verify`` decodes at a time).
+    """
+    if not attrs.get("schema"):
+        return None
+    from .schema import PackedLayout
+
+    max_dim0, _, inner = _dims(attrs)
+    chunk_rows = int(attrs["chunk_rows"])
+    per_row = max(math.prod(inner), 1) * PackedLayout(attrs["schema"]).row_bytes
+    rows = max(max_dim0, chunk_rows) if mirror else chunk_rows
+    limit = _memory_limit()
+    if limit is None or rows * per_row <= limit:
+        return None
+
+    def leaf(spec):
+        return _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).itemsize * math.prod(spec["shape"])
+
+    path, spec = max(attrs["schema"].items(), key=lambda kv: leaf(kv[1]))
+    if leaf(spec) * max(math.prod(inner), 1) * 1024 > limit:
+        field = f"attribute 'schema' entry {path!r} (shape {spec['shape']})"
+    elif inner and math.prod(inner) * 1024 > limit:
+        field = f"attribute 'inner_shape' ({list(inner)})"
+    elif chunk_rows >= max_dim0 or not mirror:
+        field = f"attribute 'chunk_rows' ({chunk_rows})"
+    else:
+        field = f"attribute 'max_size' ({attrs['max_size']})"
+    what = "its RAM mirror" if mirror else "one chunk"
+    return Problem("capacity", f"{field}: {what} of {rows} rows of {per_row} bytes would take {_size(rows * per_row)}, "
+                   f"more than this machine can allocate ({_size(limit)}: RAM + swap, or this process's limit)",
+                   key="zarr.json")
 
 
 # -- at open ------------------------------------------------------------------------------
@@ -449,6 +745,10 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
     problems = check_attributes(attrs)
     if any(p.kind == "format" for p in problems):
         return attrs  # ZarrStorage's own format check says what to do
+    capacity = None if problems else capacity_problem(attrs)
+    if capacity is not None:  # before anything is listed or allocated
+        raise ValueError(f"The store at {path!r} cannot be opened on this machine: {capacity.what}. "
+                         f"Nothing was read or changed; `robotmem verify {path}` checks it chunk by chunk.")
     if not problems:
         def get_array(p):
             node = group[p]
@@ -456,13 +756,17 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
                 raise ValueError(f"{p!r} is a group, not an array")
             return node
 
-        more, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir, list_chunks=list_chunks)
+        present: dict = {}
+        more, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir, list_chunks=list_chunks,
+                                    present=present)
         problems += more
         journal = attrs.get("journal")
-        if (decode or on_damage == "warn") and not any(p.kind == "metadata" for p in more):
+        if journal and not any(p.kind == "metadata" for p in more):
+            problems += check_journal(get_array, attrs, arrays, present if list_chunks else None)
+        if (decode or on_damage == "warn") and not any(p.kind in ("metadata", "journal") for p in problems):
             _, n0, _ = _dims(attrs)
             for p, arr in arrays.items():
-                problems += decode_chunks(arr, p, n0, int(attrs["chunk_rows"]))[0]
+                problems += decode_chunks(arr, p, n0, int(attrs["chunk_rows"]), present.get(p))[0]
             if journal and decode:
                 for p in attrs["schema"]:
                     for c in journal["chunks"]:
@@ -500,8 +804,32 @@ def _get_bytes(store: Any, key: str) -> bytes | None:
     return None if buf is None else buf.to_bytes()
 
 
-def _set_bytes(store: Any, key: str, data: bytes) -> None:
+def _set_bytes(store: Any, key: str, data: bytes, local_dir: Any = None) -> None:
+    _check_key(key, local_dir)
     zarr_sync(store.set(key, default_buffer_prototype().buffer.from_bytes(data)))
+
+
+def _delete(store: Any, key: str, local_dir: Any) -> None:
+    _check_key(key, local_dir)
+    zarr_sync(store.delete(key))
+
+
+def _check_key(key: str, local_dir: Any) -> None:
+    """Raises unless ``key`` names a file inside the store, reached through no symbolic link (``repair``'s writes)."""
+    parts = key.split("/")
+    bad = key.startswith("/") or "\\" in key or any(p in ("", ".", "..") for p in parts)
+    if not bad and local_dir is not None:
+        root = os.path.realpath(os.fspath(local_dir))
+        full = os.path.join(root, *parts)
+        node = root
+        for part in parts:
+            node = os.path.join(node, part)
+            if os.path.islink(node):
+                bad = True
+                break
+        bad = bad or os.path.commonpath([root, os.path.realpath(full)]) != root
+    if bad:
+        raise RuntimeError(f"repair refused to write {key!r}: not a file inside the store {local_dir}.")
 
 
 def _open_any(path: Any, storage_options: dict | None, *, writable: bool = False):
@@ -605,11 +933,16 @@ def verify(path: Any, *, storage_options: dict | None = None) -> IntegrityReport
     if report.problems:
         return report
     report.rows = int(attrs.get("len", 0))
+    capacity = capacity_problem(attrs, mirror=False)
+    if capacity is not None:  # no chunk of it could be decoded here
+        report.problems.append(capacity)
+        return report
 
     def get_array(p):
         return zarr.open_array(store, path=p, mode="r", zarr_format=3)
 
-    more, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir)
+    present: dict = {}
+    more, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir, present=present)
     report.problems += more
     report.arrays = len(attrs.get("schema") or {})
     report.checksums = bool(arrays) and all(
@@ -617,11 +950,12 @@ def verify(path: Any, *, storage_options: dict | None = None) -> IntegrityReport
     if attrs.get("schema"):
         _, n0, _ = _dims(attrs)
         for p, arr in arrays.items():
-            found, n = decode_chunks(arr, p, n0, int(attrs["chunk_rows"]))
+            found, n = decode_chunks(arr, p, n0, int(attrs["chunk_rows"]), present.get(p))
             report.problems += found
             report.chunks += n
         journal = attrs.get("journal")
         if journal:
+            report.problems += check_journal(get_array, attrs, arrays, present)
             rows = int(attrs["chunk_rows"])
             for p in attrs["schema"]:
                 for c in journal["chunks"]:
@@ -662,9 +996,19 @@ def repair(path: Any, *, mode: str = "truncate", storage_options: dict | None = 
       the damaged chunk. The damaged chunk files move to the backup folder;
     * a pending journal whose chunks are damaged is dropped.
 
-    A store of a newer format version is not touched (upgrade torchrl_robotmem).
-    Take the writer lock: no process may be writing the store (local stores are
-    checked; for URL stores, stop the writer first).
+    It refuses, changing nothing, where fixing the store would mean trusting one
+    record over another or leaving the store's folder: a path read from the store
+    (a schema key, ``../other.zarr/observation``) that is not inside it, a
+    symbolic link inside it, an array whose own ``zarr.json`` disagrees with the
+    schema (dtype, shape, chunking: both records are named; restore the right one
+    from a copy), a rebuilt ``zarr.json`` that decodes none of the array's
+    chunks, or sizes no machine here can hold. A store of a newer format version
+    is not touched (upgrade torchrl_robotmem).
+
+    It takes the writer lock first (an error if a process is writing the store;
+    for ``s3://`` stores, the lease; for other URL stores, stop the writer first).
+    Readers may keep reading meanwhile: a chunk it moves away is an
+    :class:`IntegrityError` naming it in a reader that was reading it, never zeros.
 
     Args:
         path: the store, as for ``ZarrStorage``.
@@ -690,21 +1034,116 @@ def repair(path: Any, *, mode: str = "truncate", storage_options: dict | None = 
     """
     if mode != "truncate":
         raise ValueError(f"mode must be 'truncate', got {mode!r}.")
-    before = verify(path, storage_options=storage_options)
-    if before.ok:
-        return RepairReport(before, before)
-    if any(p.kind == "format" for p in before.problems):
-        raise IntegrityError(before.path, before.errors, action="repair does not touch a store of a newer format:")
     store, local_dir = _open_any(path, storage_options, writable=not dry_run)
-    lock = _backend.WriterLock(local_dir) if local_dir is not None and not dry_run else None
+    lock = None if dry_run else _writer_lock(path, local_dir, storage_options)
     try:
-        return _repair(before, store, local_dir, path, storage_options, dry_run)
+        before = verify(path, storage_options=storage_options)  # under the lock: no writer changes it meanwhile
+        if before.ok:
+            return RepairReport(before, before)
+        if any(p.kind == "format" for p in before.problems):
+            raise IntegrityError(before.path, before.errors, action="repair does not touch a store of a newer format:")
+        metas = _refusals(before, store, local_dir)
+        return _repair(before, store, local_dir, path, storage_options, dry_run, metas)
     finally:
         if lock is not None:
             lock.release()
 
 
-def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairReport:
+def _writer_lock(path: Any, local_dir: Any, storage_options: dict | None):
+    """The writer lock of the store, for as long as ``repair`` writes (``None`` where there is none)."""
+    name = _backend.normalize_path(path)
+    try:
+        if local_dir is not None:
+            return _backend.WriterLock(local_dir)
+        if isinstance(name, str) and _backend.is_url(name):
+            return _backend.url_writer_lock(name, storage_options)
+    except RuntimeError as err:
+        raise RuntimeError(f"robotmem repair needs the store to itself and did not change it: {err} "
+                           f"Stop the writer (or let it finish), then run repair again.") from None
+    return None
+
+
+def _refuse(path: Any, problems: list[Problem], why: str) -> IntegrityError:
+    return IntegrityError(path, problems, read_only=True, action=f"repair refuses this store: {why}; nothing was changed.",
+                          hint=f"`robotmem verify {path}` lists everything found.")
+
+
+def _refusals(before: IntegrityReport, store: Any, local_dir: Any) -> dict[str, bytes]:
+    """What makes ``repair`` refuse, checked before it writes anything; returns the array metadata to rebuild.
+
+    Raises :class:`IntegrityError` naming the records at fault (a path leaving
+    the store, a symbolic link, two records that disagree, a rebuilt
+    ``zarr.json`` that decodes none of the chunks) or the size no machine here
+    can hold.
+    """
+    name = before.path
+    if local_dir is not None:
+        links = _symlinks(local_dir)
+        if links:
+            raise _refuse(name, [Problem("metadata", f"a symbolic link (to {os.readlink(os.path.join(local_dir, k))!r})",
+                                         key=k) for k in links], "repair writes only inside the store's folder")
+    attrs, _ = _read_group_attrs(store)
+    if attrs is None:
+        attrs = _rebuild_attrs(store, local_dir)
+    schema = attrs.get("schema")
+    if isinstance(schema, dict):
+        unsafe = [(k, unsafe_path(k)) for k in schema if unsafe_path(k) is not None]
+        if unsafe:
+            raise _refuse(name, [Problem("attribute", f"schema key {k!r} is not a path inside the store ({why})",
+                                         key="zarr.json") for k, why in unsafe], "it names paths outside it")
+    if {p.what.split("'")[1] for p in check_attributes(attrs) if p.kind == "attribute"} & {
+            "schema", "chunk_rows", "max_size", "inner_shape", "ndim", _backend.FORMAT_MARKER}:
+        return {}  # the structure is recomputed from the arrays' own metadata: nothing to disagree with
+    capacity = capacity_problem(attrs)
+    if capacity is not None:
+        raise _refuse(name, [capacity], "its sizes are more than this machine can hold")
+    found, metas = [], {}
+    for p, spec in schema.items():
+        try:
+            arr = zarr.open_array(store, path=p, mode="r", zarr_format=3)
+        except Exception:  # noqa: BLE001 - missing or unreadable: rebuilt, if the chunks agree
+            arr = None
+        if arr is not None:
+            problem = _disagreement(arr, p, spec, attrs)
+            if problem is not None:
+                found.append(problem)
+            continue
+        try:
+            jarr = zarr.open_array(store, path=f"_journal/{p}", mode="r", zarr_format=3)
+        except Exception:  # noqa: BLE001 - no journal array to compare with
+            jarr = None
+        if jarr is not None and (np.dtype(jarr.dtype) != _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
+                                 or tuple(jarr.shape[1 + len(_dims(attrs)[2]):]) != tuple(spec["shape"])):
+            found.append(Problem("metadata", f"array metadata missing, and the journal's copy (_journal/{p}/zarr.json) "
+                                 f"records {np.dtype(jarr.dtype)} {list(jarr.shape)} where the schema records "
+                                 f"{spec['dtype']} {spec['shape']}", array=p, key=f"{p}/zarr.json"))
+            continue
+        meta = _rebuild_array_meta(store, local_dir, p, attrs)
+        if meta is None:
+            found.append(Problem("metadata", f"array metadata missing, and none of its chunk files decodes as the "
+                                 f"schema records it ({spec['dtype']} {spec['shape']} in chunks of "
+                                 f"{attrs['chunk_rows']} rows)", array=p, key=f"{p}/zarr.json"))
+            continue
+        metas[p] = meta
+    if found:
+        raise _refuse(name, found, "its records disagree, and repair does not choose between them (restore the "
+                      "right one from a copy of the store)")
+    return metas
+
+
+def _symlinks(local_dir: Any) -> list[str]:
+    """Store keys of the symbolic links inside a local store (repair never writes through one)."""
+    out = []
+    root = os.fspath(local_dir)
+    for dirpath, dirs, files in os.walk(root):
+        for entry in dirs + files:
+            full = os.path.join(dirpath, entry)
+            if os.path.islink(full):
+                out.append(os.path.relpath(full, root).replace(os.sep, "/"))
+    return sorted(out)
+
+
+def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> RepairReport:
     actions: list[str] = []
     backup = None
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S-%f")
@@ -713,7 +1152,7 @@ def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairR
         for key in ["zarr.json"] + [f"{p}/zarr.json" for p in _array_metas(store, local_dir)]:
             raw = _get_bytes(store, key)
             if raw is not None:
-                _set_bytes(store, f"{backup}/{key}", raw)
+                _set_bytes(store, f"{backup}/{key}", raw, local_dir)
         actions.append(f"backed up the metadata files to {backup}/")
     attrs, problem = _read_group_attrs(store)
     group_rebuilt = attrs is None
@@ -746,16 +1185,20 @@ def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairR
     for path_ in new.get("schema") or {}:
         try:
             arr = zarr.open_array(store, path=path_, mode="r", zarr_format=3)
-            spec = new["schema"][path_]
-            if (np.dtype(arr.dtype) == _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
-                    and tuple(arr.shape[1:]) == (*inner, *spec["shape"]) and arr.shape[0] >= max_dim0):
-                continue
-        except Exception:  # noqa: BLE001 - unreadable: rebuilt below
-            pass
-        meta = _rebuild_array_meta(store, local_dir, path_, new)
+        except Exception:  # noqa: BLE001 - missing or unreadable: rebuilt below
+            arr = None
+        if arr is not None:
+            disagree = _disagreement(arr, path_, new["schema"][path_], new)
+            if disagree is not None:  # (the schema was recomputed from these very arrays: never here)
+                raise _refuse(before.path, [disagree], "its records disagree")
+            continue
+        meta = metas.get(path_) or _rebuild_array_meta(store, local_dir, path_, new)
+        if meta is None:
+            raise _refuse(before.path, [Problem("metadata", "array metadata missing, and none of its chunk files "
+                                                "decodes as the schema records it", array=path_)], "its records disagree")
         actions.append(f"rebuilt the metadata of array {path_!r} ({path_}/zarr.json)")
         if not dry_run:
-            _set_bytes(store, f"{path_}/zarr.json", meta)
+            _set_bytes(store, f"{path_}/zarr.json", meta, local_dir)
     # -- the committed length
     n_dim0 = None
     if "len" in bad_attrs or group_rebuilt:
@@ -781,8 +1224,8 @@ def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairR
             if p.kind != "missing_chunk" and p.key and not dry_run:
                 raw = _get_bytes(store, p.key)
                 if raw is not None:
-                    _set_bytes(store, f"{backup}/{p.key}", raw)
-                zarr_sync(store.delete(p.key))
+                    _set_bytes(store, f"{backup}/{p.key}", raw, local_dir)
+                _delete(store, p.key, local_dir)
                 actions.append(f"moved the damaged chunk {p.key} to {backup}/{p.key}")
     elif "len" in bad_attrs:
         actions.append(f"set the committed length to {n_dim0 * _numel(new)} rows (the written rows)")
@@ -821,7 +1264,7 @@ def _repair(before, store, local_dir, path, storage_options, dry_run) -> RepairR
         final = {**new, **changes}
         if group_rebuilt or new != attrs:
             doc = {"attributes": final, "zarr_format": 3, "consolidated_metadata": None, "node_type": "group"}
-            _set_bytes(store, "zarr.json", json.dumps(doc, indent=2).encode())
+            _set_bytes(store, "zarr.json", json.dumps(doc, indent=2).encode(), local_dir)
         elif changes:
             zarr.open_group(store, mode="r+", zarr_format=3).update_attributes(changes)
     after = None if dry_run else verify(path, storage_options=storage_options)
@@ -838,10 +1281,11 @@ def _data_problems(store, local_dir, attrs) -> list[Problem]:
     def get_array(p):
         return zarr.open_array(store, path=p, mode="r", zarr_format=3)
 
-    problems, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir)
+    present: dict = {}
+    problems, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir, present=present)
     _, n0, _ = _dims(attrs)
     for p, arr in arrays.items():
-        problems += decode_chunks(arr, p, n0, int(attrs["chunk_rows"]))[0]
+        problems += decode_chunks(arr, p, n0, int(attrs["chunk_rows"]), present.get(p))[0]
     return [p for p in problems if p.severity == "error" and p.kind in ("missing_chunk", "checksum", "undecodable")]
 
 
@@ -859,7 +1303,11 @@ def _written_extent(store, attrs, *, limit: int) -> int:
     """Rows (dim 0) up to the last one below ``limit`` holding a non-zero value in any array."""
     rows = int(attrs["chunk_rows"])
     arrays = _readable_arrays(store, attrs)
-    for c in range(-(-limit // rows) - 1, -1, -1):
+    # only chunks with a file can hold a non-zero value: the cost follows what the store holds
+    present: set[int] = set()
+    for found in present_chunks({a.path: a for a in arrays}, store=store, local_dir=_local_dir_of(store)).values():
+        present |= found
+    for c in sorted((c for c in present if c * rows < limit), reverse=True):
         lo, hi = c * rows, min((c + 1) * rows, limit)
         any_nonzero = np.zeros(hi - lo, dtype=bool)
         for arr in arrays:
@@ -871,6 +1319,11 @@ def _written_extent(store, attrs, *, limit: int) -> int:
         if any_nonzero.any():
             return lo + int(np.nonzero(any_nonzero)[0][-1]) + 1
     return 0
+
+
+def _local_dir_of(store: Any) -> Any:
+    root = getattr(store, "root", None)
+    return root if root is not None and os.path.isdir(os.fspath(root)) else None
 
 
 def _tag_maxima(store, attrs, n0: int) -> dict:
@@ -935,11 +1388,13 @@ def _backend_pytree_prefix() -> str:
     return DataKind.PYTREE_KEY + "/"
 
 
-def _rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes:
+def _rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | None:
     """``zarr.json`` of array ``path`` from the schema, with the codecs its chunks decode with.
 
-    Each candidate pipeline (checksummed ones first) decodes one chunk file of
-    the array in a scratch in-memory store; the first that decodes it wins.
+    Each candidate pipeline (checksummed ones first) decodes a chunk file of the
+    array in a scratch in-memory store; the first that decodes one of its first
+    three chunk files wins. ``None`` if none does: the schema does not describe
+    these chunks (another dtype or shape), and nothing is rebuilt from it.
     """
     from zarr.storage import MemoryStore
 
@@ -948,26 +1403,28 @@ def _rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes:
     dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
     shape = (max_dim0, *inner, *spec["shape"])
     chunks = (int(attrs["chunk_rows"]), *shape[1:])
-    keys = sorted(k for k in _list_keys(store, local_dir, path) if k.startswith(f"{path}/c/"))
-    raw = _get_bytes(store, keys[0]) if keys else None
-    metas = []
-    for checksum in (True, False):
-        for comp in ("blosc", "zstd", None):
-            mem = MemoryStore()
-            arr = zarr.create_array(mem, name="a", shape=shape, chunks=chunks, dtype=dtype, fill_value=0,
-                                    compressors=_backend.make_compressors(comp, 1, dtype.itemsize, checksum=checksum))
-            metas.append(_get_bytes(mem, "a/zarr.json"))
-            if raw is None:
-                return metas[0]
-            rel = keys[0][len(path) + 1:]
-            _set_bytes(mem, f"a/{rel}", raw)
-            c = int(rel.split("/")[1])
-            try:
-                arr[c * chunks[0]:(c + 1) * chunks[0]]
-                return metas[-1]
-            except Exception:  # noqa: BLE001 - not this pipeline
-                continue
-    return metas[0]  # no pipeline decodes it: the chunk is damaged too (reported by verify)
+    keys = sorted(k for k in _list_keys(store, local_dir, path) if k.startswith(f"{path}/c/"))[:3]
+    first = None
+    for key in keys or [None]:
+        raw = _get_bytes(store, key) if key is not None else None
+        for checksum in (True, False):
+            for comp in ("blosc", "zstd", None):
+                mem = MemoryStore()
+                arr = zarr.create_array(mem, name="a", shape=shape, chunks=chunks, dtype=dtype, fill_value=0,
+                                        compressors=_backend.make_compressors(comp, 1, dtype.itemsize, checksum=checksum))
+                meta = _get_bytes(mem, "a/zarr.json")
+                if raw is None:
+                    return meta  # no chunk file to decode: the schema's description, checksummed
+                first = first or meta
+                rel = key[len(path) + 1:]
+                _set_bytes(mem, f"a/{rel}", raw)
+                c = int(rel.split("/")[1])
+                try:
+                    arr[c * chunks[0]:(c + 1) * chunks[0]]
+                    return meta
+                except Exception:  # noqa: BLE001 - not this pipeline
+                    continue
+    return None
 
 
 # -- hooks for ZarrStorage ------------------------------------------------------------------
