@@ -235,6 +235,21 @@ CASES = [
          lambda c: recall(c.rb, torch.zeros(3), 3, max_distance=-1)),
     Case("goal-key", "`goal_key=\"desired_goal\"` (no such column)", KeyError, r"desired_goal",
          lambda c: recall(c.rb, torch.zeros(3), 3, goal_key="desired_goal")),
+    # -- reserved names ------------------------------------------------------------------------------------
+    Case("tag-episode", "an `episode` column of the user's own", ValueError,
+         r"'episode' is a tag column the storage writes itself.*rename_key_\('episode', 'user_episode'\)",
+         lambda c: c.rb.extend(_with(c.rows(4), "episode", torch.arange(4)))),
+    Case("tag-run", "a `run` column of the user's own", ValueError, r"'run' is a tag column.*'user_run'",
+         lambda c: c.rb.extend(_with(c.rows(4), "run", torch.zeros(4, dtype=torch.long)))),
+    Case("tag-inplace", "`rb[3] = row` whose `episode` differs from the row's stored episode", ValueError,
+         r"'episode' is a tag column", lambda c: c.rb.__setitem__(3, _with(c.rows(1)[0], "episode", torch.tensor(7)))),
+    Case("reserved-underscore", "a top-level key `_journal` (the store's own journal directory)", ValueError,
+         r"'_journal' is reserved.*rename_key_\('_journal', 'user_journal'\)",
+         lambda c: c.rb.extend(_with(c.rows(4), "_journal", torch.zeros(4)))),
+    Case("reserved-dotdot", "a key `(nested, \"..\")`", ValueError, r"\('nested', '\.\.'\) holds the name '\.\.'.*Rename",
+         lambda c: c.rb.extend(_with(c.rows(4), ("nested", ".."), torch.zeros(4)))),
+    Case("reserved-zarr-json", "a key `zarr.json`", ValueError, r"'zarr\.json' holds the name 'zarr\.json'.*Rename",
+         lambda c: c.rb.extend(_with(c.rows(4), "zarr.json", torch.zeros(4)))),
 ]
 
 
@@ -288,6 +303,40 @@ def test_bad_input(case: Case, ctx: Ctx):
     if not case.damages:
         assert _hashes(ctx.path) == before_files, "the store's files changed"
         _assert_same_rows(ctx.path, before_rows)
+
+
+def test_tag_columns_are_input_only_where_they_carry_the_storage_meaning(tmp_path):
+    """``env`` codes and collector ``traj_ids`` are input; ``episode`` / ``run`` only as the stored tags.
+
+    Rows read with ``sample_tags=True`` and written back in place carry their
+    stored tags: accepted, the tags kept. The same row with another episode id,
+    or appended, is refused (before, the column was silently replaced).
+    """
+    path = tmp_path / "m.zarr"
+    st = ZarrStorage(path, MAX_SIZE, chunk_rows=16, env="FetchPush-v4", sample_tags=True, background=False)
+    try:
+        rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+        rows = make_rows(torch.arange(ROWS))
+        rows["env"] = torch.zeros(ROWS, dtype=torch.long)  # the store's env code 0
+        rows["collector", "traj_ids"] = torch.arange(ROWS) // 8  # TorchRL's own key: episodes follow it
+        rb.extend(rows)
+        assert st["episode"][:ROWS].tolist() == (torch.arange(ROWS) // 8).tolist()
+        row = rb[3]
+        assert {"episode", "run", "env"} <= set(row.keys())
+        row["observation"] = torch.full((5,), -1.0)
+        rb[3] = row  # a read-modify-write round trip
+        assert st["observation"][3].tolist() == [-1.0] * 5 and int(st["episode"][3]) == 0
+        before = st[:ROWS].clone()
+        row["episode"] = torch.tensor(4)
+        with pytest.raises(ValueError, match="'episode' is a tag column"):
+            rb[3] = row
+        with pytest.raises(ValueError, match="'episode' is a tag column"):
+            rb.extend(rb[:4])  # appended rows get new episode ids: a copied 'episode' would be replaced
+        assert len(st) == ROWS and (st[:ROWS] == before).all()
+        rb.extend(rb[:4].exclude("episode", "run"))  # the fix the message gives
+        assert len(st) == ROWS + 4 and torch.equal(st["observation"][ROWS:ROWS + 4], st["observation"][:4])
+    finally:
+        st.close()
 
 
 def test_nan_goals_are_stored_and_never_recalled(ctx: Ctx):

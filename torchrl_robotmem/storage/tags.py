@@ -2,19 +2,111 @@
 
 Every stored row carries three int64 tags written by the storage itself:
 ``episode`` (unique across runs), ``run`` (one per writing session) and ``env``
-(an index into the store's env-name table). This module computes them.
+(an index into the store's env-name table). This module computes them, and
+says which names user data may not take (:func:`check_user_keys`,
+:func:`check_user_tag`): a column named like a tag would be replaced by the
+tag, and a key named like the store's own bookkeeping would break it.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-__all__ = ["TAG_KEYS", "UNKNOWN_ENV", "EpisodeTagger", "open_episode_ends"]
+__all__ = [
+    "RESERVED_PARTS", "TAG_KEYS", "UNKNOWN_ENV", "EpisodeTagger", "check_user_keys", "check_user_tag",
+    "open_episode_ends",
+]
 
 #: Row tags written by the storage itself (int64 scalars per row).
 TAG_KEYS = ("episode", "run", "env")
 #: The env code of rows written without an env name.
 UNKNOWN_ENV = -1
+#: Key components no stored key may hold: each key is a directory path inside the store.
+RESERVED_PARTS = frozenset({".", "..", "zarr.json"})
+
+_TAG_MEANING = {
+    "episode": "a global episode id the storage draws from done flags or collector trajectory ids",
+    "run": "the writing session",
+    "env": "the env code",
+}
+
+
+# -- reserved names -------------------------------------------------------------
+
+
+def check_user_keys(keys, *, allowed=()) -> None:
+    """Raises ``ValueError`` naming the first key a store cannot hold under its name.
+
+    A store keeps its own bookkeeping under top-level names starting with
+    ``_`` (``_journal/`` holds a ring overwrite in flight, ``_repair_backup/``
+    what ``robotmem repair`` replaced), and every key is a directory path inside
+    the store, so no component may be ``.``, ``..`` or ``zarr.json``.
+
+    Args:
+        keys: the keys of the data (strings or tuples of strings, nested keys included).
+
+    Keyword Args:
+        allowed: top-level names that may start with ``_`` (the data kinds' own
+            ``_tensor`` / ``_pytree``).
+
+    Example:
+        >>> check_user_keys(["observation", ("next", "reward"), ("collector", "traj_ids")])
+        >>> check_user_keys(["_journal"])
+        Traceback (most recent call last):
+        ...
+        ValueError: Key '_journal' is reserved: top-level names starting with '_' hold the store's own bookkeeping ...
+    """
+    for key in keys:
+        parts = (key,) if isinstance(key, str) else tuple(key)
+        if not parts:
+            continue
+        if parts[0].startswith("_") and parts[0] not in allowed:
+            new = "user" + parts[0] if len(parts) == 1 else ("user" + parts[0], *parts[1:])
+            raise ValueError(
+                f"Key {key!r} is reserved: top-level names starting with '_' hold the store's own bookkeeping "
+                f"('_journal', '_repair_backup', ...). Rename it before writing, e.g. "
+                f"td.rename_key_({key!r}, {new!r})."
+            )
+        bad = [p for p in parts if p in RESERVED_PARTS]
+        if bad:
+            raise ValueError(
+                f"Key {key!r} holds the name {bad[0]!r}, which a store cannot use (each key is a directory path "
+                f"inside the store; '.', '..' and 'zarr.json' are reserved). Rename it before writing."
+            )
+
+
+def check_user_tag(key: str, value, stored: torch.Tensor | None) -> None:
+    """Raises ``ValueError`` unless the data's own column ``key`` (a tag name) equals the tags it would get.
+
+    ``episode`` and ``run`` are drawn by the storage, so a column of that name
+    in the data would be silently replaced. It is accepted only where it
+    equals the stored tags of the rows written (``stored``: rows read with
+    ``sample_tags=True`` and written back in place, or rows copied from another
+    store); otherwise it is refused, and the fix is to rename it.
+
+    Args:
+        key (str): ``"episode"``, ``"run"`` or ``"env"``.
+        value: the data's column.
+        stored (torch.Tensor, optional): the tags the rows get (``[*lead]``),
+            ``None`` when they are not drawn yet (an append).
+
+    Example:
+        >>> check_user_tag("episode", torch.tensor([3, 3]), torch.tensor([3, 3]))  # a round trip
+        >>> check_user_tag("episode", torch.tensor([0, 1]), None)
+        Traceback (most recent call last):
+        ...
+        ValueError: Key 'episode' is a tag column the storage writes itself ...
+    """
+    if stored is not None and isinstance(value, torch.Tensor) and not value.dtype.is_floating_point:
+        v = value.reshape(*stored.shape, -1) if value.numel() % max(stored.numel(), 1) == 0 else None
+        if v is not None and stored.numel() and bool((v == stored.to(v.device).unsqueeze(-1)).all()):
+            return
+    raise ValueError(
+        f"Key {key!r} is a tag column the storage writes itself ({_TAG_MEANING[key]}): a column of that name "
+        f"in the data would be replaced by it. Rename it before writing, e.g. "
+        f"td.rename_key_({key!r}, 'user_{key}'), or drop it with td.exclude({key!r}); the stored tags read "
+        f"back as storage[{key!r}]."
+    )
 
 
 class EpisodeTagger:
