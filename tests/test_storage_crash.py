@@ -17,8 +17,11 @@ writing, committing, flushing), reopens the store and checks:
 Two modes: an append-only store (done-split episodes) and a 300-row ring that wraps
 dozens of times (collector ``traj_ids``, journalled overwrites). Writers are forked
 from a forkserver with torch/torchrl/zarr preloaded, so a kill cycle takes well under
-a second. Set ``CRASH_SEED`` to replay a schedule; ``CRASH_KILLS`` to change the
-number of kills per mode (18).
+a second. The schedule is seeded: ``CRASH_SEED`` if set, else ``ROBOTMEM_TEST_SEED``
+(default 0), printed and named in every failure; ``CRASH_KILLS`` changes the number of
+planned kills per mode (18). After them the loop kills on (bounded) until a third of
+them saw committed progress (kills during start-up do not count) and, for the ring, it
+has wrapped three times: each extra kill waits for a new commit record on disk first.
 
 The deterministic tests at the end crash the writer at one chosen point each (mid
 journalled commit, mid metadata commit, with a commit in flight, with ring rows
@@ -27,6 +30,7 @@ ahead of the metadata) and pin the bugs found by the random test.
 from __future__ import annotations
 
 import asyncio
+import json
 import multiprocessing as mp
 import os
 import random
@@ -41,6 +45,7 @@ from pathlib import Path
 import pytest
 import torch
 import zarr
+from conftest import seed_from_env
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_robotmem.storage import ZarrStorage
@@ -257,7 +262,26 @@ class Tracker:
         assert (td["env"] == st.env_code("FetchPush-v4")).all()
 
 
-def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed, pause=0.03):
+def _committed_write_count(path: Path) -> int:
+    """The write count of the commit record on disk (0 before the first)."""
+    try:
+        return int(json.loads((path / "zarr.json").read_text())["attributes"].get("write_count", 0))
+    except (FileNotFoundError, ValueError, KeyError):
+        return 0
+
+
+def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed, pause=0.03,
+               min_rows=0, max_extra_kills=60):
+    """``kills`` kills at drawn moments, then more until the run shows what it is for.
+
+    After the planned kills, the loop kills on (at most ``max_extra_kills``
+    more) while fewer than a third of the planned kills saw committed progress
+    or fewer than ``min_rows`` rows are committed. Each extra kill waits for the
+    event that makes it progress (a commit record on disk past the last
+    reopen's write count) and then lands at a drawn moment. Kills during
+    start-up never count as progress. Only writers that stop committing reach
+    the bound; the failure says so, with the seed.
+    """
     path = tmp_path / "store.zarr"
     err_file = tmp_path / "child_error.txt"
     script = tmp_path / "crash_child.py"
@@ -267,22 +291,36 @@ def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed, p
     tracker = Tracker(path, max_size, traj_ids)
     progressed = 0
     startup_kills = 0
-    for it in range(kills):
+    need_progress = kills // 3
+    it = 0
+    while it < kills or progressed < need_progress or tracker.last_w < min_rows:
+        extra = it >= kills
+        if it >= kills + max_extra_kills:
+            pytest.fail(
+                f"after {it} kills (CRASH_SEED={seed}) only {progressed} saw committed progress (want "
+                f"{need_progress}) and {tracker.last_w} rows are committed (want {min_rows}): writers that "
+                f"stop committing are a bug"
+            )
         prog = ctx.RawArray("q", 6)
         args = dict(path=str(path), max_size=max_size, chunk_rows=chunk_rows, traj_ids=traj_ids,
                     seed=seed * 1000 + it, prog=prog, err_file=str(err_file), pause=pause)
         p = ctx.Process(target=runpy.run_path, args=(str(script),),
                         kwargs={"init_globals": {"ARGS": args}, "run_name": "crash_child"})
         p.start()
-        deadline = time.monotonic() + 30
-        if it > 0 and rng.random() < 0.25:
+        deadline = time.monotonic() + 60
+        if not extra and it > 0 and rng.random() < 0.25:
             # kill while the writer opens the store (journal replay, episode close, flush)
             time.sleep(rng.random() * 0.15)
-            startup_kills += prog[0] == 0
         else:
             while prog[0] < 2 and p.is_alive() and time.monotonic() < deadline:
                 time.sleep(0.002)
+            if extra:  # until the writer committed something new: this kill makes progress
+                while (_committed_write_count(path) <= tracker.last_w and p.is_alive()
+                       and time.monotonic() < deadline):
+                    time.sleep(0.002)
             time.sleep(rng.random() * 1.0)
+        startup = prog[0] < 2  # it had not returned from its first extend
+        startup_kills += startup
         alive = p.is_alive()
         if alive:
             os.kill(p.pid, signal.SIGKILL)
@@ -291,53 +329,58 @@ def _run_kills(tmp_path: Path, *, max_size, chunk_rows, traj_ids, kills, seed, p
             msg = err_file.read_text() if err_file.exists() else "(no traceback)"
             pytest.fail(f"writer died on its own (exit {p.exitcode}) at kill {it}, seed {seed}:\n{msg}")
         if prog[0] >= 1:  # it opened: it saw everything the previous open saw
-            assert (prog[1], prog[2]) == (tracker.last_w, tracker.last_len), "the writer saw another state"
+            assert (prog[1], prog[2]) == (tracker.last_w, tracker.last_len), (
+                f"the writer saw another state (CRASH_SEED={seed})")
             assert prog[3] == prog[1] % max_size
         tracker.durable_w = max(tracker.durable_w, prog[5])
         before = tracker.last_w
         try:
             tracker.reopen_and_check()
         except AssertionError as e:
-            raise AssertionError(f"after kill {it} (seed {seed}): {e}") from e
-        progressed += tracker.last_w > before
-    return tracker, progressed, startup_kills
+            raise AssertionError(f"after kill {it} (CRASH_SEED={seed}): {e}") from e
+        progressed += not startup and tracker.last_w > before
+        it += 1
+    return tracker, progressed, startup_kills, it
 
 
 def _seed():
-    return int(os.environ.get("CRASH_SEED", random.randrange(10**6)))
+    return seed_from_env("CRASH_SEED")
 
 
 def _kills(default):
     return int(os.environ.get("CRASH_KILLS", default))
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
 def test_sigkill_append_store(tmp_path):
     """A store larger than everything written: rows only ever appended."""
     seed = _seed()
-    tracker, progressed, startup = _run_kills(
+    print(f"CRASH_SEED={seed}")
+    tracker, progressed, startup, kills = _run_kills(
         tmp_path, max_size=1_000_000, chunk_rows=64, traj_ids=False, kills=_kills(18), seed=seed
     )
-    print(f"seed={seed} rows={tracker.last_w} kills with progress={progressed} kills while opening="
+    print(f"seed={seed} kills={kills} rows={tracker.last_w} kills with progress={progressed} kills while opening="
           f"{startup} episodes closed at reopen={len(tracker.forced_done)} "
           f"leftover .partial files={_leftover_partials(tmp_path / 'store.zarr')}")
+    # (holds by construction: the loop kills on until it does, or fails saying why)
     assert progressed >= _kills(18) // 3, "the writer made no durable progress between most kills"
     assert not tracker.ring
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
 def test_sigkill_ring_store(tmp_path):
     """A small ring (300 rows, chunks of 64: the last chunk is partial) wrapping many times."""
     seed = _seed()
-    tracker, progressed, startup = _run_kills(
-        tmp_path, max_size=300, chunk_rows=64, traj_ids=True, kills=_kills(18), seed=seed
+    print(f"CRASH_SEED={seed}")
+    tracker, progressed, startup, kills = _run_kills(
+        tmp_path, max_size=300, chunk_rows=64, traj_ids=True, kills=_kills(18), seed=seed, min_rows=3 * 300 + 1
     )
-    print(f"seed={seed} rows={tracker.last_w} wraps={tracker.last_w // 300} kills while opening="
+    print(f"seed={seed} kills={kills} rows={tracker.last_w} wraps={tracker.last_w // 300} kills while opening="
           f"{startup} episodes closed at reopen={len(tracker.forced_done)} "
           f"pending journals at reopen={tracker.pending_journals} "
-
           f"leftover .partial files={_leftover_partials(tmp_path / 'store.zarr')}")
-    assert tracker.ring and tracker.last_w > 3 * 300  # wrapped several times (fewer on a loaded box)
+    # (both hold by construction: the loop kills on until they do, or fails saying why)
+    assert tracker.ring and tracker.last_w > 3 * 300  # wrapped several times
     assert progressed >= _kills(18) // 3
 
 
@@ -408,27 +451,48 @@ def test_crash_mid_journaled_commit_read_only_open(tmp_path):
 
 
 def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):
-    """flush() called while the background writer is mid-commit returns only once it committed."""
+    """flush() called while the background writer is mid-commit returns only once it committed.
+
+    The commit's chunk write is held (a slow disk or object store) until the test
+    releases it: the commit is in flight for as long as the test needs, however
+    loaded the machine. flush() runs in a thread that notes whether the write was
+    still held when flush() returned; the write is released only after that
+    thread has had a second to return on its own.
+    """
     from zarr.core.array import AsyncArray
 
     orig = AsyncArray.setitem
-    started = threading.Event()
+    started, release = threading.Event(), threading.Event()
 
-    async def slow(self, selection, value, prototype=None):  # a slow disk / object store
+    async def held(self, selection, value, prototype=None):  # a slow disk / object store
         started.set()
-        await asyncio.sleep(0.3)
+        while not release.is_set():  # (zarr's event loop stays free for the reads below)
+            await asyncio.sleep(0.005)
         return await orig(self, selection, value, prototype)
 
-    monkeypatch.setattr(AsyncArray, "setitem", slow)
+    monkeypatch.setattr(AsyncArray, "setitem", held)
     path = tmp_path / "m.zarr"
     # in-process commits: the patched write runs in this process (the worker process has
     # the same wait: flush() returns when the worker's reply to the commit arrives)
     st = ZarrStorage(path, 1000, chunk_rows=64, commit_interval=0.05, commit_process=False)
     rb = TensorDictReplayBuffer(storage=st, batch_size=4)
     rb.extend(make_rows(torch.arange(10)))
-    assert started.wait(30), "the timer commit never started"
-    assert not st._dirty and st._inflight == 1, "the commit is not in flight: the scenario is not exercised"
-    st.flush()
+    try:
+        assert started.wait(60), "the timer commit never started"
+        assert not st._dirty and st._inflight == 1, "the commit is not in flight: the scenario is not exercised"
+        returned = []
+
+        def flush():
+            st.flush()
+            returned.append("while the write was held" if not release.is_set() else "after the write")
+
+        t = threading.Thread(target=flush)
+        t.start()
+        t.join(1.0)  # a flush() that does not wait returns while the write is held
+    finally:
+        release.set()
+    t.join(60)
+    assert returned == ["after the write"], f"flush() returned {returned}"
     assert len(ZarrStorage(path, read_only=True)) == 10, "flush() returned before the rows were committed"
     st.close()
 
@@ -471,36 +535,96 @@ def test_ring_rows_never_lead_the_metadata(tmp_path):
         assert torch.equal(w, expected), f"write_count {W}, slots hold {int(w.min())}..{int(w.max())}"
 
 
-_ATTRS_CHILD = ROWS_SRC + '''
-import json, os, signal, sys, zarr
+# Every process started with _ATTRS_HOOK's directory on PYTHONPATH (the writer and, through
+# the environment it inherits, its commit worker, a script of its own) imports it at start-up
+# (Python's ``sitecustomize`` hook): after every ``Group.update_attributes`` on the store it
+# reads the commit record back from disk, logs it, and if the record is half-written (len,
+# cursor and write_count disagree: no ring here, they are equal in every whole record) kills
+# the writer and its worker on the spot, as a crash at that moment would.
+_ATTRS_HOOK = r"""
+import os
+if os.environ.get("ROBOTMEM_TEST_ATTRS_LOG"):
+    import json, signal, sys
+    import zarr
+    _log, _store = os.environ["ROBOTMEM_TEST_ATTRS_LOG"], os.environ["ROBOTMEM_TEST_ATTRS_STORE"]
+    _role = "worker" if os.path.basename(sys.argv[0]) == "_commit_worker.py" else "writer"
+    _orig = zarr.Group.update_attributes
+
+    def update_attributes(self, new):
+        out = _orig(self, new)
+        root = getattr(self.store, "root", None)
+        if root is None or os.path.realpath(root) != _store:
+            return out
+        with open(os.path.join(_store, "zarr.json")) as f:
+            a = json.load(f)["attributes"]
+        record = {k: a.get(k) for k in ("len", "cursor", "write_count")}
+        ok = None in record.values() or record["len"] == record["cursor"] == record["write_count"]
+        with open(_log, "a") as f:
+            f.write(json.dumps({"role": _role, "pid": os.getpid(), "keys": sorted(new), "record": record,
+                                "ok": ok}) + "\n")
+        if not ok:  # this half-written commit is what a crash leaves
+            if _role == "worker":
+                os.kill(os.getppid(), signal.SIGKILL)
+            os.kill(os.getpid(), signal.SIGKILL)
+        return out
+
+    zarr.Group.update_attributes = update_attributes
+"""
+
+_ATTRS_CHILD = ROWS_SRC + """
+import json, os, sys, time
 from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem.storage import ZarrStorage
-path = sys.argv[1]
-st = ZarrStorage(path, 1000, chunk_rows=64, commit_interval=60)
+path, mode, log = sys.argv[1], sys.argv[2], os.environ["ROBOTMEM_TEST_ATTRS_LOG"]
+
+def records_by(role):
+    # commit records (attribute writes that carry len) the hook checked in that role
+    if not os.path.exists(log):
+        return 0
+    with open(log) as f:
+        return sum(1 for line in f if json.loads(line)["role"] == role and "len" in json.loads(line)["keys"])
+
+st = ZarrStorage(path, 1000, chunk_rows=64, commit_interval=60, commit_process=mode == "worker")
 rb = TensorDictReplayBuffer(storage=st, batch_size=4)
-rb.extend(make_rows(torch.arange(100))); st.flush()
-orig = zarr.Group.update_attributes
-def update_attributes(self, new):
-    out = orig(self, new)
-    with open(os.path.join(path, "zarr.json")) as f:
-        a = json.load(f)["attributes"]
-    if (a["len"], a["cursor"]) != (a["write_count"], a["write_count"]):
-        os.kill(os.getpid(), signal.SIGKILL)  # this half-written commit is what a crash leaves
-    return out
-zarr.Group.update_attributes = update_attributes
-rb.extend(make_rows(torch.arange(100, 150))); st.flush()
-'''
+w = 0
+# the worker takes commits over once it has started: commit until it has written three records
+deadline = time.monotonic() + 120
+while True:
+    rb.extend(make_rows(torch.arange(w, w + 50))); st.flush(); w += 50
+    if w >= 150 and (mode != "worker" or records_by("worker") >= 3) or time.monotonic() > deadline:
+        break
+print("rows", w, flush=True)
+"""
 
 
-def test_commit_metadata_is_written_atomically(tmp_path):
+@pytest.mark.parametrize("mode", ["worker", "in-process"])
+def test_commit_metadata_is_written_atomically(tmp_path, mode):
+    """Every commit record on disk is whole, whichever process writes it (the commit worker or the writer)."""
     path = tmp_path / "m.zarr"
-    script = tmp_path / "attrs_child.py"
+    script, hook, log = tmp_path / "attrs_child.py", tmp_path / "hook", tmp_path / "attrs.log"
     script.write_text(_ATTRS_CHILD)
-    out = subprocess.run([sys.executable, str(script), str(path)], capture_output=True, text=True, timeout=120)
-    # the child kills itself at the first half-written commit it sees; it saw none
-    assert out.returncode == 0, (out.returncode, out.stderr)
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(_ATTRS_HOOK)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(hook), os.environ.get("PYTHONPATH")])),
+           "ROBOTMEM_TEST_ATTRS_LOG": str(log), "ROBOTMEM_TEST_ATTRS_STORE": os.path.realpath(path)}
+    out = subprocess.run([sys.executable, str(script), str(path), mode], capture_output=True, text=True,
+                         timeout=300, env=env)
+    lines = [json.loads(x) for x in log.read_text().splitlines()] if log.exists() else []
+    bad = [x for x in lines if not x["ok"]]
+    assert not bad, f"half-written commit records on disk: {bad[:3]}"
+    # the child is killed at the first half-written record it sees; it saw none
+    assert out.returncode == 0, (out.returncode, out.stderr[-3000:])
+    records = {role: sum(1 for x in lines if x["role"] == role and "len" in x["keys"]) for role in ("worker", "writer")}
+    print(f"{mode}: commit records checked on disk after each write, by the process that wrote them: {records}")
+    # the hook ran, in the process that writes the records in this mode
+    if mode == "worker":
+        assert records["worker"] > 0, f"no commit record went through the commit worker: {records}"
+    else:
+        assert records["worker"] == 0 and records["writer"] > 0, records
+    rows = int(out.stdout.split()[-1])
+    assert rows >= 150
     with ZarrStorage(path) as st:
-        assert len(st) == 150
+        assert len(st) == rows
         assert (len(st), st._writer_cursor) == (st._write_count, st._write_count), (
             f"len {len(st)}, cursor {st._writer_cursor}, write_count {st._write_count}"
         )
