@@ -18,6 +18,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 import warnings
 
 import pytest
@@ -284,3 +285,152 @@ def test_key_added_later_writes_its_older_chunks(store):
     with ZarrStorage(path, read_only=True) as s:
         assert not s["extra"][:ROWS].any() and s["extra"][ROWS:].all()
     assert verify(path).ok
+
+
+# -- repair and readers ---------------------------------------------------------------------
+
+_HOLD_WRITER = """
+import os, sys, time
+from torchrl_robotmem import ZarrStorage
+s = ZarrStorage(sys.argv[1])  # holds the writer lock until killed
+open(sys.argv[2], "w").close()
+time.sleep(600)
+"""
+
+
+@pytest.mark.parametrize("damaged", [False, True])
+def test_repair_takes_the_writer_lock(store, tmp_path, damaged):
+    """A process writing the store: repair refuses before it reads or writes anything, naming the cause."""
+    path, _ = store
+    ready = tmp_path / "ready"
+    env = {**os.environ, "TORCHRL_ROBOTMEM_COMMIT_PROCESS": "0", "PYTHONWARNINGS": "ignore"}
+    writer = subprocess.Popen([sys.executable, "-c", _HOLD_WRITER, path, str(ready)], env=env)
+    try:
+        while not ready.exists():
+            assert writer.poll() is None, "the writer process died"
+            time.sleep(0.05)
+        if damaged:  # damage while it writes (a chunk deleted under it)
+            os.remove(os.path.join(path, "action/c/1/0"))
+        digest = _hash(path)
+        with pytest.raises(RuntimeError, match=rf"(?s)robotmem repair needs the store to itself and did not change "
+                                               rf"it: .*is writing to .*pid {writer.pid}.*Stop the writer"):
+            repair(path)
+        assert _hash(path) == digest
+    finally:
+        writer.kill()
+        writer.wait(60)
+    assert repair(path).ok  # the writer gone, repair runs
+
+
+_READER_PAUSED_AFTER_LISTING = """
+import json, os, sys, time
+import torch
+from torchrl_robotmem import ZarrStorage
+from torchrl_robotmem.storage import integrity
+
+path, listed, moved = sys.argv[1:4]
+real = integrity.check_open
+
+
+def paused(*args, **kwargs):  # the open's checks (its listing of the chunk files) done, the rows not read yet
+    out = real(*args, **kwargs)
+    open(listed, "w").close()
+    deadline = time.monotonic() + 300
+    while not os.path.exists(moved):
+        assert time.monotonic() < deadline, "repair never finished"
+        time.sleep(0.01)
+    return out
+
+
+integrity.check_open = paused
+try:
+    with ZarrStorage(path, read_only=True) as s:
+        n = len(s)
+        obs = s["observation"][:n]
+        zero = (obs == 0).all(-1)
+        print(json.dumps({"rows": n, "zero_rows": zero.nonzero().flatten().tolist()[:5], "obs": obs.tolist()}))
+except integrity.IntegrityError as err:
+    print(json.dumps({"error": str(err)}))
+"""
+
+
+def test_reader_is_never_served_zeros_for_a_chunk_repair_moves_away(store, tmp_path):
+    """A read-only open lists the chunk files, repair moves a damaged one to its backup, then the rows are read.
+
+    The order holds by construction: the reader process pauses right after the
+    open's checks (a hook wrapping ``integrity.check_open``) until ``repair`` has
+    finished. Zarr reads the moved chunk as zeros; the reader must raise an
+    ``IntegrityError`` naming it (or serve the right rows), never serve zeros.
+    """
+    path, before = store
+    _edit(path, "observation/c/2/0", _flip)  # damage repair will move away
+    listed, moved = tmp_path / "listed", tmp_path / "moved"
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    reader = subprocess.Popen([sys.executable, "-c", _READER_PAUSED_AFTER_LISTING, path, str(listed), str(moved)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        while not listed.exists():
+            assert reader.poll() is None, reader.stderr.read()
+            time.sleep(0.02)
+        result = repair(path)
+        assert any("moved the damaged chunk observation/c/2/0" in a for a in result.actions), str(result)
+        moved.touch()
+        out, err = reader.communicate(timeout=300)
+    finally:
+        if reader.poll() is None:
+            reader.kill()
+    assert reader.returncode == 0, err
+    got = json.loads(out.strip().splitlines()[-1])
+    if "error" in got:
+        assert re.search(r"array 'observation' chunk 2 \(observation/c/2/0, rows 128-191\): chunk file missing",
+                         got["error"]), got["error"]
+        assert "robotmem repair" in got["error"]
+    else:  # the right rows (what the store held when the reader's open checked it), nothing invented
+        assert not got["zero_rows"], f"served zero rows {got['zero_rows']} where data was"
+        assert torch.equal(torch.tensor(got["obs"]), before["observation"][:got["rows"]])
+    with ZarrStorage(path, read_only=True) as s:  # after the repair: the intact rows
+        assert len(s) == 128 and torch.equal(s["observation"], before["observation"][:128])
+
+
+def test_refresh_runs_the_checks_an_open_runs(store):
+    """A tailing reader's refresh after a commit record claiming more rows than written: an error, not zeros."""
+    path, before = store
+    reader = ZarrStorage(path, read_only=True)
+    assert reader.refresh() == ROWS
+    _edit(path, "zarr.json", _attr("len", 390))  # rows 300-389 were never written
+    with pytest.raises(IntegrityError, match=r"array '\w+' chunk 5 \(\w+/c/5(/0)?, rows 320-383\): chunk file missing"):
+        ZarrStorage(path, read_only=True)
+    with pytest.raises(IntegrityError, match=r"array '\w+' chunk 5 \(\w+/c/5(/0)?, rows 320-383\): chunk file missing"):
+        reader.refresh()
+    # the handle keeps what it had
+    assert len(reader) == ROWS and torch.equal(reader["observation"][:ROWS], before["observation"])
+    _edit(path, "zarr.json", _attr("len", ROWS))
+    assert reader.refresh() == ROWS
+    reader.close()
+
+
+_GROW = """
+import sys, torch
+from torchrl_robotmem import ZarrStorage
+sys.path.insert(0, sys.argv[3])
+from test_integrity import _rows
+path, new_max = sys.argv[1], int(sys.argv[2])
+with ZarrStorage(path, new_max) as s:  # grows the store (it has not wrapped), then writes past the old size
+    n = len(s)
+    s.set(slice(n, n + 900), _rows(900, n))
+"""
+
+
+def test_refresh_after_the_writer_grew_the_store(store):
+    """A writer process reopens the store with a larger max_size and writes past the old size; a reader refreshes."""
+    path, before = store
+    reader = ZarrStorage(path, read_only=True)
+    assert reader.refresh() == ROWS and reader.max_size == MAX
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    subprocess.run([sys.executable, "-c", _GROW, path, str(2 * MAX), os.path.dirname(__file__)], env=env,
+                   check=True, timeout=300)
+    assert reader.refresh() == ROWS + 900 > MAX
+    assert reader.max_size == 2 * MAX
+    assert torch.equal(reader["observation"][:ROWS], before["observation"])
+    assert torch.equal(reader["observation"][ROWS:ROWS + 900], _rows(900, ROWS)["observation"])
+    reader.close()
