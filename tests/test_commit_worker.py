@@ -71,18 +71,31 @@ def test_the_worker_by_default_and_in_process_commits_on_request(tmp_path, monke
         assert len(ZarrStorage(s.path, read_only=True)) == 30
 
 
-def test_a_failed_write_in_the_worker_is_raised_with_its_cause(tmp_path):
-    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=64, commit_process=True)
-    _wait_for_worker(st)
+@pytest.mark.parametrize("commit_process", [True, False])
+def test_a_failed_write_is_raised_with_its_cause_and_retried_by_flush(tmp_path, commit_process):
+    st = ZarrStorage(tmp_path / "m.zarr", 1000, chunk_rows=64, commit_process=commit_process)
+    if commit_process:
+        _wait_for_worker(st)
     rb = ReplayBuffer(storage=st, batch_size=4)
     rb.extend(make_transitions(10))
     st.flush()
-    # a directory where the next chunk file must go: the worker's write fails
-    (tmp_path / "m.zarr" / "observation" / "c" / "1" / "0").mkdir(parents=True)
+    # a directory where the next chunk file must go: the write fails (in the worker, or here)
+    blocker = tmp_path / "m.zarr" / "observation" / "c" / "1" / "0"
+    blocker.mkdir(parents=True)
     rb.extend(make_transitions(100, start=10))
-    with pytest.raises(RuntimeError, match=r"background writer .* failed: \w*Error: "):
+    with pytest.raises(RuntimeError, match=r"background writer .* failed: \w*Error: .*100 rows \(write "
+                                           r"numbers 10 to 109, the same storage indices\) are not durable"):
         st.flush()
     assert len(ZarrStorage(tmp_path / "m.zarr", read_only=True)) == 10  # the commit record did not move
+    with pytest.raises(RuntimeError, match="not durable"):
+        st.flush()  # the cause is still there: the retry fails the same way
+    blocker.rmdir()  # the cause is gone: the next flush writes every row the process held
+    st.flush()
+    back = ZarrStorage(tmp_path / "m.zarr", read_only=True)
+    assert len(back) == 110 and _rows_equal(back.get(torch.arange(110)), make_transitions(110))
+    rb.extend(make_transitions(5, start=110))  # and writes go on
+    st.close()
+    assert len(ZarrStorage(tmp_path / "m.zarr", read_only=True)) == 115
 
 
 CHILD = textwrap.dedent(

@@ -52,6 +52,19 @@ _PRELUDE = textwrap.dedent(
 
     def ready():
         print("ready", flush=True)
+
+    def extend_until_signal(rb, start, cap=5000):
+        # extends until a signal ends the process (or its handler says stop); bounded, so that
+        # no chunk of ONLY_FLUSH_COMMITS ever fills: past `cap` batches it only waits
+        i = start
+        while i < cap:
+            extend_batches(rb, 1, start=i)
+            i += 1
+        while True:
+            time.sleep(0.01)
+
+    # only a flush commits: no timer (an hour), no complete chunk (10**6 rows)
+    ONLY_FLUSH_COMMITS = dict(commit_interval=3600, chunk_rows=10**6)
     """
 )
 
@@ -72,7 +85,12 @@ def _run_child(tmp_path: Path, body: str, *, signal_after_ready: int | None = No
     if signal_after_ready is not None:
         line = proc.stdout.readline()
         assert line.strip() == "ready", f"child did not start: {line!r} {proc.stderr.read()}"
-        time.sleep(0.3)  # inside the tight extend loop by now
+        # inside the extend loop: wait until it has completed three more extends (an event, not a time)
+        counter = np.memmap(counter_path, dtype=np.int64, mode="r", shape=(1,))
+        at_ready, deadline = int(counter[0]), time.monotonic() + 120
+        while int(counter[0]) < at_ready + 3:
+            assert proc.poll() is None and time.monotonic() < deadline, "the child stopped extending"
+            time.sleep(0.005)
         proc.send_signal(signal_after_ready)
     out, err = proc.communicate(timeout=timeout)
     completed = int(np.memmap(counter_path, dtype=np.int64, mode="r", shape=(1,))[0])
@@ -182,12 +200,15 @@ def test_hydra_main_returning(tmp_path):
 
 
 def test_sigterm_in_a_tight_extend_loop(tmp_path):
-    """What SLURM / Kubernetes send before preemption: flush, then die by SIGTERM as before."""
+    """What SLURM / Kubernetes send before preemption: flush, then die by SIGTERM as before.
+
+    Only a flush commits in this child: without the handler's flush the store would hold 0 rows.
+    """
     res, completed, path = _run_child(tmp_path, """
-        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000_000), batch_size=4)
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10**6, **ONLY_FLUSH_COMMITS), batch_size=4)
         extend_batches(rb, 2)
         ready()
-        extend_batches(rb, 10**9, start=2)
+        extend_until_signal(rb, 2)
     """, signal_after_ready=signal.SIGTERM)
     assert res.returncode == -signal.SIGTERM, res.stderr  # the default action still happens
     assert completed > 2
@@ -198,29 +219,37 @@ def test_sigterm_chains_to_the_previous_handler(tmp_path):
     """A handler installed before the store opened still runs (and may keep the process alive)."""
     res, completed, path = _run_child(tmp_path, """
         stop = []
-        signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
-        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000_000), batch_size=4)
+        # runs right after the storage's flush: len(rb) is what that flush had to make durable
+        signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(len(rb)))
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10**6, **ONLY_FLUSH_COMMITS), batch_size=4)
         extend_batches(rb, 2)
         ready()
         i = 2
         while not stop:
-            extend_batches(rb, 1, start=i)
-            i += 1
-        # the handler ran, and the store was already flushed when it did
-        print("stopped", len(ZarrStorage(PATH, read_only=True)) >= 2 * BATCH, flush=True)
+            if i < 5000:
+                extend_batches(rb, 1, start=i)
+                i += 1
+            else:
+                time.sleep(0.01)
+        # the handler ran, and the store was already flushed when it did: every row extended
+        # before it (only a flush commits here)
+        print("stopped", len(ZarrStorage(PATH, read_only=True)), stop[0], flush=True)
         extend_batches(rb, 1, start=i)    # still writable afterwards
     """, signal_after_ready=signal.SIGTERM)
     assert res.returncode == 0, res.stderr
-    assert "stopped True" in res.stdout
+    stopped = [line.split()[1:] for line in res.stdout.splitlines() if line.startswith("stopped")]
+    assert len(stopped) == 1 and stopped[0][0] == stopped[0][1], res.stdout
+    assert int(stopped[0][0]) >= 5 * BATCH  # 2 before ready, 3 more before the signal was sent
     _check_rows(path, completed)
 
 
 def test_ctrl_c_in_a_tight_extend_loop(tmp_path):
+    """Only a flush commits in this child: the exit hook's flush is what keeps the rows."""
     res, completed, path = _run_child(tmp_path, """
-        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000_000), batch_size=4)
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10**6, **ONLY_FLUSH_COMMITS), batch_size=4)
         extend_batches(rb, 2)
         ready()
-        extend_batches(rb, 10**9, start=2)
+        extend_until_signal(rb, 2)
     """, signal_after_ready=signal.SIGINT)
     # Python ends an uncaught KeyboardInterrupt by re-raising SIGINT after its normal exit path;
     # with ray installed (torchrl.envs imports it), the process exits with status 1 instead
