@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -249,3 +252,237 @@ def test_existing_targets_and_bad_sources_are_refused(memory, tmp_path, capsys, 
     assert not (tmp_path / "new.zarr").exists()
     assert main(["import", str(tmp_path / "nowhere-v0"), str(tmp_path / "new.zarr")]) == 2
     assert not (tmp_path / "new.zarr").exists()
+
+
+# -- atomic commands, partial inputs -------------------------------------------------------------------
+
+
+def _npz_export(path, n: int) -> dict[str, np.ndarray]:
+    """An npz in the export format (``__robotmem__`` JSON + one array per key); every column a function of the row."""
+    w = np.arange(n)
+    arrays = {
+        "observation": (w[:, None] * 5 + np.arange(5)).astype(np.float32),
+        "action": np.stack([-w, w % 7], -1).astype(np.int64),
+        "next/achieved_goal": np.stack([np.sin(w * 0.37), np.cos(w * 0.11), w * 1e-4], -1).astype(np.float32),
+        "next/done": (w % 50 == 49)[:, None],
+        "episode": w // 50, "run": np.zeros(n, np.int64), "env": np.zeros(n, np.int64),
+    }
+    schema = {k: {"dtype": str(a.dtype), "shape": list(a.shape[1:])} for k, a in arrays.items()}
+    meta = {"format": "torchrl_robotmem.npz", "version": 1, "env_names": ["FetchPush-v4"],
+            "kind": {"kind": "tensordict"}, "ndim": 1, "max_size": n, "rows": n, "schema": schema}
+    np.savez(path, **arrays, __robotmem__=np.array(json.dumps(meta)))
+    return arrays
+
+
+def _tree(root) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def _chunks_written(directory) -> bool:
+    """Whether any chunk file of ``observation`` exists under ``directory`` (a store being built)."""
+    try:
+        return bool(os.listdir(os.path.join(directory, "observation", "c")))
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+
+
+def test_a_killed_import_leaves_nothing_at_the_target_and_a_rerun_imports_every_row(tmp_path):
+    """SIGKILL ``robotmem import`` once it has written chunks: no memory at the target (before: an empty memory
+    that ``verify`` called intact, and a rerun refused); the rerun removes the leftover and imports every row."""
+    import signal
+
+    src = tmp_path / "src.npz"
+    out = tmp_path / "out"
+    out.mkdir()
+    target = out / "m.zarr"
+    n = 400_000
+    for _attempt in range(4):  # bounded: an attempt whose import finished before its chunks were seen is redone
+        arrays = _npz_export(src, n)
+        before = _tree(tmp_path)
+        proc = _cli("import", str(src), str(target))
+        partial = out / f".m.zarr.partial-{proc.pid}"
+        # the event: rows are on disk (chunk files), wherever the import writes them
+        while proc.poll() is None and not (_chunks_written(partial) or _chunks_written(target)):
+            time.sleep(0.005)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+            proc.communicate(timeout=120)
+            break
+        proc.communicate(timeout=120)
+        assert proc.returncode == 0
+        shutil.rmtree(target)  # finished first: again, with more rows (a longer write)
+        n *= 2
+    else:
+        pytest.fail("four imports finished before any of their chunk files was seen")
+    assert proc.returncode == -signal.SIGKILL
+    assert not target.exists(), "a killed import left a memory at the target"
+    assert partial.is_dir() and _chunks_written(partial)  # the rows it had written, in its own build directory
+    assert _tree(tmp_path) == sorted([*before, str(partial.relative_to(tmp_path)),
+                                      *(str(p.relative_to(tmp_path)) for p in partial.rglob("*"))])
+    # verify / inspect say what happened; the build itself is never called intact
+    checks = [(["verify", str(target)], 2), (["inspect", str(target)], 2), (["verify", str(partial)], 1)]
+    procs = [_cli(*args) for args, _ in checks]  # at once: starting Python with torch is most of their time
+    for (args, code), p in zip(checks, procs):
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == code, (args, err)
+        assert "interrupted command" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    # the rerun: the leftover removed, every row imported bit-exact
+    rerun = _cli("import", str(src), str(target))
+    stdout, err = rerun.communicate(timeout=600)
+    assert rerun.returncode == 0, err
+    assert os.listdir(out) == ["m.zarr"], "the killed import's build directory was left"
+    st = ZarrStorage(target, read_only=True)
+    try:
+        assert len(st) == n
+        for key, value in arrays.items():
+            got = st[tuple(key.split("/")) if "/" in key else key].numpy()
+            assert got.dtype == value.dtype and got.tobytes() == value.tobytes(), key
+    finally:
+        st.close()
+    assert main(["verify", str(target)]) == 0
+
+
+def _minari_source(memory, tmp_path, monkeypatch) -> str:
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "elsewhere"))
+    src = str(tmp_path / "exports" / "fetch-v0")
+    assert main(["export", memory, src]) == 0
+    return src
+
+
+def _h5(src, edit):
+    import h5py
+
+    with h5py.File(os.path.join(src, "data", "main_data.hdf5"), "a") as f:
+        edit(f)
+
+
+def _cut_off_export(src):
+    """What a Minari export killed after 5 of its 13 episodes leaves: metadata.json as first written (0 episodes)."""
+    _h5(src, lambda f: [f.__delitem__(f"episode_{i}") for i in range(5, 13)])
+    meta_file = os.path.join(src, "data", "metadata.json")
+    with open(meta_file) as fh:
+        meta = json.load(fh)
+    meta.update(total_episodes=0, total_steps=0)
+    meta.pop("torchrl_robotmem")
+    with open(meta_file, "w") as fh:
+        json.dump(meta, fh)
+
+
+def _truncate(path, keep=0.5):
+    data = open(path, "rb").read()
+    open(path, "wb").write(data[: int(len(data) * keep)])
+
+
+def _short_observations(f):
+    g = f["episode_2"]["observations"]
+    kept = g["observation"][:-2]
+    del g["observation"]
+    g["observation"] = kept
+
+
+def _flip_byte(path, offset):
+    data = bytearray(open(path, "rb").read())
+    data[offset] ^= 0xFF
+    open(path, "wb").write(bytes(data))
+
+
+def _npz_without(src, key):
+    z = dict(np.load(src, allow_pickle=False))
+    z.pop(key)
+    np.savez(src, **z)
+
+
+def _npz_with(src, **changes):
+    z = dict(np.load(src, allow_pickle=False))
+    z.update(changes)
+    np.savez(src, **z)
+
+
+def _reserved_key_npz(src):
+    z = dict(np.load(src, allow_pickle=False))
+    meta = json.loads(str(z["__robotmem__"]))
+    z["_journal"] = z["observation"]
+    meta["schema"]["_journal"] = meta["schema"]["observation"]
+    z["__robotmem__"] = np.array(json.dumps(meta))
+    np.savez(src, **z)
+
+
+BAD_SOURCES = [
+    # (id, format, damage(src), what the one error line names)
+    ("npz-truncated", "npz", lambda s: _truncate(s), r"src\.npz' is not an npz export .*a truncated file"),
+    ("npz-empty-file", "npz", lambda s: _truncate(s, 0), r"src\.npz' is not an npz export"),
+    ("npz-member-damaged", "npz", lambda s: _flip_byte(s, 200),  # inside observation.npy, the first member
+     r"src\.npz': array 'observation' cannot be read \(BadZipFile: Bad CRC-32"),
+    ("npz-missing-key", "npz", lambda s: _npz_without(s, "observation"),
+     r"src\.npz' lacks the arrays \['observation'\] its metadata lists"),
+    ("npz-short-array", "npz", lambda s: _npz_with(s, observation=np.zeros((30, 5), np.float32)),
+     r"src\.npz': array 'observation' holds 30 rows, but"),
+    ("npz-meta-not-json", "npz", lambda s: _npz_with(s, __robotmem__=np.array("{not json")),
+     r"src\.npz': its '__robotmem__' array is not JSON"),
+    ("npz-reserved-key", "npz", _reserved_key_npz, r"src\.npz': Key '_journal' is reserved.*user_journal"),
+    ("minari-cut-off", "minari", _cut_off_export,
+     r"metadata\.json' lists 0 episodes \(0 steps\) but .*main_data\.hdf5' holds 5 episodes \(30 steps\)"),
+    ("minari-episodes-missing", "minari", lambda s: _h5(s, lambda f: f.__delitem__("episode_7")),
+     r"lists 13 episodes \(78 steps\) but .*main_data\.hdf5' holds 12 episodes \(72 steps; missing episode_7\)"),
+    ("minari-hdf5-truncated", "minari", lambda s: _truncate(os.path.join(s, "data", "main_data.hdf5")),
+     r"main_data\.hdf5' cannot be read \(OSError: .*truncated"),
+    ("minari-hdf5-missing", "minari", lambda s: os.remove(os.path.join(s, "data", "main_data.hdf5")),
+     r"fetch-v0/data': the Minari dataset cannot be opened"),
+    ("minari-metadata-truncated", "minari", lambda s: _truncate(os.path.join(s, "data", "metadata.json")),
+     r"metadata\.json' is not valid JSON"),
+    ("minari-episode-key-missing", "minari", lambda s: _h5(s, lambda f: f["episode_3"].__delitem__("rewards")),
+     r"fetch-v0': episode 3 cannot be read from .*main_data\.hdf5' \(KeyError: .*rewards"),
+    ("minari-short-observations", "minari", lambda s: _h5(s, _short_observations),
+     r"fetch-v0': episode 2 cannot be imported \(ValueError: observations 'observation' hold 5 steps"),
+]
+
+
+@pytest.mark.parametrize("case", BAD_SOURCES, ids=[c[0] for c in BAD_SOURCES])
+def test_a_partial_or_damaged_source_is_one_error_line_and_creates_nothing(case, memory, tmp_path, monkeypatch,
+                                                                            capsys):
+    _, fmt, damage, match = case
+    if fmt == "npz":
+        src = str(tmp_path / "src.npz")
+        _npz_export(src, 40)
+    else:
+        src = _minari_source(memory, tmp_path, monkeypatch)
+    damage(src)
+    capsys.readouterr()
+    before = _tree(tmp_path)
+    target = tmp_path / "new" / "m.zarr"
+    assert main(["import", src, str(target)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and err.startswith("robotmem import: error: "), err
+    assert re.search(match, err), err
+    assert not target.exists()
+    assert [p for p in _tree(tmp_path) if p not in before] in ([], ["new"]), "the failed import left files"
+
+
+def test_exports_build_beside_their_target_and_remove_the_builds_of_killed_commands(memory, tmp_path, monkeypatch):
+    """What a killed export leaves (``.NAME.partial-PID`` of a process that is gone) is removed by the next
+    command on that target; a build whose process still runs is left alone; nothing else is touched."""
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "elsewhere"))
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    alive = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    out = tmp_path / "exports"
+    out.mkdir()
+    try:
+        stale_ds = out / f".fetch-v0.partial-{dead.pid}"
+        (stale_ds / "fetch-v0" / "data").mkdir(parents=True)
+        (stale_ds / "fetch-v0" / "data" / "metadata.json").write_text('{"total_episodes": 0}')
+        stale_npz = out / f".m.npz.partial-{dead.pid}.npz"
+        stale_npz.write_bytes(b"PK\x03\x04 cut off")
+        running = out / f".m.npz.partial-{alive.pid}.npz"
+        running.write_bytes(b"another export, still running")
+        other = out / ".unrelated.partial-1"  # not a build of these targets
+        other.mkdir()
+        assert main(["export", memory, str(out / "fetch-v0")]) == 0
+        assert main(["export", memory, str(out / "m.npz")]) == 0
+        assert sorted(os.listdir(out)) == sorted(["fetch-v0", "m.npz", running.name, other.name])
+        assert running.read_bytes() == b"another export, still running"
+        assert main(["import", str(out / "m.npz"), str(out / "m.zarr")]) == 0
+        assert main(["import", str(out / "fetch-v0"), str(out / "back.zarr")]) == 0
+        assert summarize(str(out / "m.zarr"))["rows"] == summarize(str(out / "back.zarr"))["rows"] == 78
+    finally:
+        alive.communicate(b"")

@@ -4,11 +4,17 @@ Shared by the ``inspect``, ``plot`` and ``export`` commands. A memory is opened
 with ``ZarrStorage(path, read_only=True)``: no writer lock is taken, a pending
 commit journal is applied in RAM only, and a writer process may keep appending
 meanwhile (what it commits later is not seen).
+
+Commands that create a store build it in a hidden sibling
+``.NAME.partial-PID`` and rename it into place when complete
+(:func:`partial_path`). Such a sibling is an interrupted build: opening it, or
+the missing target beside it, is an error that says so (:func:`incomplete_build_error`).
 """
 from __future__ import annotations
 
 import json
 import os
+import re
 from typing import Any
 
 import numpy as np
@@ -24,11 +30,71 @@ def not_a_memory(path: Any, why: str) -> CLIError:
     return CLIError(f"{os.fspath(path)!r} is not a torchrl_robotmem memory ({why}).")
 
 
+# -- partial builds -----------------------------------------------------------------------------------
+
+_PARTIAL = re.compile(r"^\.(?P<target>.+)\.partial-(?P<pid>\d+)(?:\.zip|\.npz)?$")
+
+
+def partial_path(path: str, pid: int | None = None) -> str:
+    """The hidden sibling a command builds ``path`` in: ``PARENT/.NAME.partial-PID`` (``.zip`` / ``.npz`` kept).
+
+    Example:
+        >>> partial_path("/data/fetch.zarr", pid=42)
+        '/data/.fetch.zarr.partial-42'
+        >>> partial_path("/data/fetch.npz", pid=42)
+        '/data/.fetch.npz.partial-42.npz'
+    """
+    parent, base = os.path.split(os.path.abspath(path))
+    suffix = next((s for s in (".zip", ".npz") if base.endswith(s)), "")
+    return os.path.join(parent, f".{base}.partial-{os.getpid() if pid is None else pid}{suffix}")
+
+
+def partial_builds(path: str) -> list[tuple[str, int]]:
+    """``[(partial path, pid)]``: the builds of ``path`` beside it (finished ones were renamed to ``path``)."""
+    parent, base = os.path.split(os.path.abspath(path))
+    try:
+        names = sorted(os.listdir(parent))
+    except (FileNotFoundError, NotADirectoryError, PermissionError):
+        return []
+    out = []
+    for name in names:
+        m = _PARTIAL.match(name)
+        if m is not None and m.group("target") == base:
+            out.append((os.path.join(parent, name), int(m.group("pid"))))
+    return out
+
+
+def incomplete_build_error(path: Any, code: int = 2) -> CLIError | None:
+    """A :class:`CLIError` when ``path`` is an interrupted build, or a missing target with one beside it."""
+    from torchrl_robotmem.storage._backend import is_url, normalize_path
+
+    name = normalize_path(path)
+    if not isinstance(name, str) or is_url(name):
+        return None
+    m = _PARTIAL.match(os.path.basename(os.path.abspath(name)))
+    if m is not None and os.path.lexists(name):
+        target = os.path.join(os.path.dirname(os.path.abspath(name)), m.group("target"))
+        return CLIError(
+            f"{os.fspath(path)!r} is the incomplete build of {target!r} left by an interrupted command (process "
+            f"{m.group('pid')}): not a memory to use. Run that command again (it removes this), or delete it.",
+            code=code,
+        )
+    if not os.path.lexists(name):
+        beside = partial_builds(name)
+        if beside:
+            return not_a_memory(path, f"no such file or directory; {beside[0][0]!r} beside it is the incomplete "
+                                      f"build of an interrupted command (process {beside[0][1]}): run it again")
+    return None
+
+
 def open_memory(path: Any):
     """A read-only :class:`~torchrl_robotmem.ZarrStorage` on ``path``, or a :class:`CLIError` saying why not."""
     from torchrl_robotmem.storage import ZarrStorage
     from torchrl_robotmem.storage._backend import FORMAT_MARKER, is_url, normalize_path
 
+    incomplete = incomplete_build_error(path)
+    if incomplete is not None:
+        raise incomplete
     name = normalize_path(path)
     if isinstance(name, str) and not is_url(name):
         if not os.path.exists(name):

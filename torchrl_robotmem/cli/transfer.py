@@ -19,6 +19,17 @@ directory named ``NAME-vVERSION``) or from ``--format``.
   the dataset's metadata under ``"torchrl_robotmem"``. ``import`` reads a local
   dataset (a directory, or an id under ``MINARI_DATASETS_PATH``; nothing is
   downloaded) episode by episode into transitions with ``next`` keys.
+
+Every command that creates something (the memory of ``import``, the ``.npz``
+or dataset directory of ``export``) builds it in a hidden sibling
+``.NAME.partial-PID`` of the target and renames it into place once it is
+complete: a command killed at any moment leaves nothing at the target, only
+that sibling, which the next run on the same target removes (once its process
+is gone). A target that is a store URL (``s3://...``, ``memory://...``) cannot
+be renamed into place and is written directly. A source that is cut off or
+damaged (a truncated ``.npz`` or HDF5 file, a ``metadata.json`` that
+disagrees with the episodes present) is one error line naming the file, and
+nothing is created.
 """
 from __future__ import annotations
 
@@ -29,6 +40,8 @@ import os
 import re
 import shutil
 import warnings
+import zipfile
+import zlib
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -38,7 +51,17 @@ from . import CLIError
 
 if TYPE_CHECKING:
     from torchrl_robotmem.storage import ZarrStorage
-from ._memory import DONE_KEY, SUCCESS_KEY, column, has_key, open_memory, root_attrs, write_order
+from ._memory import (
+    DONE_KEY,
+    SUCCESS_KEY,
+    column,
+    has_key,
+    open_memory,
+    partial_builds,
+    partial_path,
+    root_attrs,
+    write_order,
+)
 
 __all__ = ["export_npz", "import_npz", "export_minari", "import_minari", "add_arguments", "run"]
 
@@ -64,6 +87,71 @@ def _progress(iterable, **kwargs):
 def _check_target(path: str) -> None:
     if os.path.lexists(path):
         raise CLIError(f"{path!r} exists; refusing to overwrite it. Remove it or choose another name.")
+
+
+# -- atomic targets ----------------------------------------------------------------------------------
+
+
+def _is_local(path: Any) -> bool:
+    from torchrl_robotmem.storage._backend import is_url, normalize_path
+
+    name = normalize_path(path)
+    return isinstance(name, str) and not is_url(name)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _remove(path: str) -> None:
+    if os.path.isdir(path) and not os.path.islink(path):
+        shutil.rmtree(path)
+    else:
+        os.unlink(path)
+
+
+def _remove_stale_partials(path: str) -> list[str]:
+    """Removes the partial builds of ``path`` whose process is gone (killed); returns their paths.
+
+    Only names of the form ``.NAME.partial-PID`` in the target's own directory
+    are considered; nothing else is touched.
+    """
+    removed = []
+    for partial, pid in partial_builds(path):
+        if pid == os.getpid() or _pid_alive(pid):
+            continue
+        _remove(partial)
+        removed.append(partial)
+    return removed
+
+
+@contextlib.contextmanager
+def _atomic_target(path: str, *, inner: str | None = None) -> Iterator[str]:
+    """Yields the hidden sibling to build ``path`` in; renames it to ``path`` if the block succeeds.
+
+    ``inner``: the block builds ``SIBLING/inner`` (a Minari dataset inside its
+    datasets root), which is what becomes ``path``. On any error, and on a
+    ``KeyboardInterrupt``, the sibling is removed; a SIGKILL leaves it, and the
+    next command on ``path`` removes it.
+    """
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    _remove_stale_partials(path)
+    tmp = partial_path(path)
+    if os.path.lexists(tmp):  # this pid's own leftover (pids are reused): no live process owns it
+        _remove(tmp)
+    try:
+        yield tmp
+        _check_target(path)  # created meanwhile by someone else: theirs is kept
+        os.rename(os.path.join(tmp, inner) if inner else tmp, path)
+    finally:
+        if os.path.lexists(tmp):
+            _remove(tmp)
 
 
 def _path(key: Any) -> str:
@@ -123,13 +211,8 @@ def export_npz(path: Any, out: str) -> dict[str, Any]:
         }
     finally:
         storage.close()
-    tmp = out[: -len(".npz")] + ".partial.npz"
-    try:
+    with _atomic_target(out) as tmp:
         np.savez(tmp, **arrays, **{META_KEY: np.array(json.dumps(meta))})
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return meta
 
 
@@ -166,27 +249,30 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
     _check_target(path)
     if not os.path.isfile(src):
         raise CLIError(f"{src!r} is not a file")
-    try:
-        data = np.load(src, allow_pickle=False)
-        meta = json.loads(str(data[META_KEY]))
-    except (OSError, ValueError, KeyError) as err:
-        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory ({err})") from None
+    data, meta = _open_npz(src)
     if meta.get("format") != NPZ_FORMAT or int(meta.get("version", 0)) > NPZ_VERSION:
         raise CLIError(f"{src!r}: unknown npz format {meta.get('format')!r} version {meta.get('version')!r}")
     keys = [k for k in data.files if k != META_KEY]
     schema = meta.get("schema") or {}
     missing = sorted(set(schema) - set(keys))
     if missing:
-        raise CLIError(f"{src!r} lacks the arrays {missing} its metadata lists")
-    arrays = {k: data[k] for k in _progress(keys, desc="read", unit="key")}
+        raise CLIError(f"{src!r} lacks the arrays {missing} its metadata lists (a cut-off export?); export it again")
+    arrays = {k: _read_npz_array(data, src, k) for k in _progress(keys, desc="read", unit="key")}
+    rows = int(meta.get("rows", 0))
+    ndim = int(meta.get("ndim", 1))
+    lead = None
     for k, a in arrays.items():
         spec = schema.get(k)
         if spec is not None and (str(a.dtype) != spec["dtype"] or
                                  list(a.shape[a.ndim - len(spec["shape"]):]) != spec["shape"]):
             raise CLIError(f"{src!r}: array {k!r} has dtype {a.dtype} and shape {list(a.shape)}, "
                            f"its metadata says {spec['dtype']} {spec['shape']} per row")
-    rows = int(meta.get("rows", 0))
-    ndim = int(meta.get("ndim", 1))
+        n0 = a.shape[0] if a.ndim else None
+        if n0 is None or (lead is not None and n0 != lead[1]) or (ndim == 1 and n0 != rows):
+            raise CLIError(f"{src!r}: array {k!r} holds {n0} rows, but "
+                           + (f"{lead[0]!r} holds {lead[1]}" if lead is not None and n0 != lead[1]
+                              else f"the metadata says {rows}") + " (a cut-off or edited export); export it again")
+        lead = lead or (k, n0)
     capacity = int(max_size or meta.get("max_size") or rows)
     if capacity < rows:
         raise CLIError(f"--max-size {capacity} is smaller than the {rows} rows in {src!r}")
@@ -205,10 +291,49 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
                     zarr_meta["env_names"] = [env]
                     tags["env"] = torch.zeros_like(tags["env"])
                 zarr_meta["tags"] = TensorDict(tags, batch_size=lead).state_dict()
-            storage.load_state_dict({"_storage": td, "_len": rows, "initialized": True, "zarr": zarr_meta})
+            try:
+                storage.load_state_dict({"_storage": td, "_len": rows, "initialized": True, "zarr": zarr_meta})
+            except (ValueError, TypeError, KeyError) as err:  # what the storage refuses: a reserved key, a bad env code...
+                raise CLIError(f"{src!r}: {err}") from None
         elif env is not None:
             storage.env = env
     return rows
+
+
+#: What reading a truncated or damaged npz member raises (zlib, zip and numpy's own checks).
+_NPZ_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
+def _open_npz(src: str):
+    """``(NpzFile, metadata dict)`` of an npz export, or a :class:`CLIError` naming the file."""
+    try:
+        data = np.load(src, allow_pickle=False)
+    except _NPZ_READ_ERRORS as err:
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (it cannot be read as npz: "
+                       f"{type(err).__name__}: {err}; a truncated file?)") from None
+    if not hasattr(data, "files"):
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (one .npy array, not an npz)")
+    try:
+        meta = json.loads(str(_read_npz_array(data, src, META_KEY)))
+    except CLIError:
+        if META_KEY in data.files:
+            raise
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (no {META_KEY!r} array)") from None
+    except ValueError as err:
+        raise CLIError(f"{src!r}: its {META_KEY!r} array is not JSON ({err})") from None
+    if not isinstance(meta, dict):
+        raise CLIError(f"{src!r}: its {META_KEY!r} array is not a JSON object")
+    return data, meta
+
+
+def _read_npz_array(data, src: str, key: str) -> np.ndarray:
+    if key not in data.files:
+        raise CLIError(f"{src!r} has no array {key!r}")
+    try:
+        return data[key]
+    except _NPZ_READ_ERRORS as err:
+        raise CLIError(f"{src!r}: array {key!r} cannot be read ({type(err).__name__}: {err}); the file is "
+                       f"truncated or damaged: export it again") from None
 
 
 def _nest(flat: dict[str, Any]) -> dict[str, Any]:
@@ -224,18 +349,19 @@ def _nest(flat: dict[str, Any]) -> dict[str, Any]:
 
 @contextlib.contextmanager
 def _new_store(path: str, capacity: int, **kwargs) -> Iterator[ZarrStorage]:
-    """A new store for an import: closed at the end, removed if the import fails (nothing half-imported is left)."""
+    """A new store for an import, built beside ``path`` and renamed to it once closed (see :func:`_atomic_target`).
+
+    If the import fails, or is killed, nothing is at ``path``. A store URL is
+    written in place (an object store has no rename) and left as it is on failure.
+    """
     from torchrl_robotmem.storage import ZarrStorage
 
-    storage = ZarrStorage(path, capacity, **kwargs)
-    try:
-        yield storage
-    except BaseException:
-        storage.close()
-        if os.path.isdir(path):
-            shutil.rmtree(path, ignore_errors=True)
-        raise
-    storage.close()
+    with _atomic_target(path) if _is_local(path) else contextlib.nullcontext(path) as target:
+        storage = ZarrStorage(target, capacity, **kwargs)
+        try:
+            yield storage
+        finally:
+            storage.close()
 
 
 # -- Minari ------------------------------------------------------------------------------------------
@@ -343,25 +469,28 @@ def export_minari(path: Any, out: str, *, obs_keys: list[str] | None = None) -> 
 
     obs_space = gym.spaces.Dict({k: box(cols[k]) for k in keys}) if len(keys) > 1 else box(cols[keys[0]])
     old = os.environ.get("MINARI_DATASETS_PATH")
-    os.environ["MINARI_DATASETS_PATH"] = root
-    try:
-        import minari
+    # built in a hidden datasets root beside `out` (ROOT/.NAME-vN.partial-PID/NAME-vN), moved to `out` when complete
+    with _atomic_target(os.path.join(root, dataset_id), inner=dataset_id) as build_root:
+        os.makedirs(build_root)
+        os.environ["MINARI_DATASETS_PATH"] = build_root
+        try:
+            import minari
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # minari's "author is None" etc.
-            ds = minari.create_dataset_from_buffers(
-                dataset_id, buffers, observation_space=obs_space, action_space=box(action),
-                algorithm_name="torchrl_robotmem export", description=f"exported by torchrl_robotmem from {path}",
-                data_format="hdf5",
-            )
-            ds.storage.update_metadata({"torchrl_robotmem": {
-                "env_names": env_names, "episode_env": ep_env, "episode_run": ep_run, "obs_keys": keys,
-                "schema": schema, "source": str(path)}})
-    finally:
-        if old is None:
-            os.environ.pop("MINARI_DATASETS_PATH", None)
-        else:
-            os.environ["MINARI_DATASETS_PATH"] = old
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # minari's "author is None" etc.
+                ds = minari.create_dataset_from_buffers(
+                    dataset_id, buffers, observation_space=obs_space, action_space=box(action),
+                    algorithm_name="torchrl_robotmem export", description=f"exported by torchrl_robotmem from {path}",
+                    data_format="hdf5",
+                )
+                ds.storage.update_metadata({"torchrl_robotmem": {
+                    "env_names": env_names, "episode_env": ep_env, "episode_run": ep_run, "obs_keys": keys,
+                    "schema": schema, "source": str(path)}})
+        finally:
+            if old is None:
+                os.environ.pop("MINARI_DATASETS_PATH", None)
+            else:
+                os.environ["MINARI_DATASETS_PATH"] = old
     return {"dataset_id": dataset_id, "episodes": len(buffers), "steps": int(n), "obs_keys": keys}
 
 
@@ -372,20 +501,66 @@ def _group_rows(values: np.ndarray) -> dict[int, np.ndarray]:
 
 
 def _open_minari(src: str):
+    """``(MinariDataset, data directory)`` of a local dataset, or a :class:`CLIError` naming what is wrong."""
     import minari
 
     candidates = [os.path.join(src, "data"), src] if os.path.isdir(src) else []
-    for c in candidates:
-        if os.path.isfile(os.path.join(c, "metadata.json")):
-            return minari.MinariDataset(c)
-    if os.path.exists(src):
-        raise CLIError(f"{src!r} is not a Minari dataset (no data/metadata.json)")
-    root = os.environ.get("MINARI_DATASETS_PATH") or os.path.join(os.path.expanduser("~"), ".minari", "datasets")
-    local = os.path.join(root, src)
-    if not os.path.isfile(os.path.join(local, "data", "metadata.json")):
-        raise CLIError(f"{src!r} is neither a Minari dataset directory nor a local dataset id (looked in "
-                       f"{local}); nothing is downloaded: pass the dataset directory")
-    return minari.MinariDataset(os.path.join(local, "data"))
+    data_dir = next((c for c in candidates if os.path.isfile(os.path.join(c, "metadata.json"))), None)
+    if data_dir is None:
+        if os.path.exists(src):
+            raise CLIError(f"{src!r} is not a Minari dataset (no data/metadata.json)")
+        root = os.environ.get("MINARI_DATASETS_PATH") or os.path.join(os.path.expanduser("~"), ".minari", "datasets")
+        local = os.path.join(root, src)
+        if not os.path.isfile(os.path.join(local, "data", "metadata.json")):
+            raise CLIError(f"{src!r} is neither a Minari dataset directory nor a local dataset id (looked in "
+                           f"{local}); nothing is downloaded: pass the dataset directory")
+        data_dir = os.path.join(local, "data")
+    try:
+        ds = minari.MinariDataset(data_dir)
+    except json.JSONDecodeError as err:
+        raise CLIError(f"{os.path.join(data_dir, 'metadata.json')!r} is not valid JSON ({err}): the dataset was "
+                       f"cut off or damaged; export it again") from None
+    except Exception as err:  # noqa: BLE001 - whatever minari / h5py raise on a damaged dataset: one line, no traceback
+        raise CLIError(f"{data_dir!r}: the Minari dataset cannot be opened ({type(err).__name__}: {err}); a "
+                       f"cut-off or damaged export? Export it again") from None
+    _check_minari_complete(ds, data_dir)
+    return ds, data_dir
+
+
+def _check_minari_complete(ds, data_dir: str) -> None:
+    """Refuses an HDF5 dataset whose ``metadata.json`` and ``main_data.hdf5`` disagree (a cut-off export).
+
+    Minari writes ``metadata.json`` (with 0 episodes) first, then the episodes,
+    then the final counts: a run cut in between leaves episodes the metadata
+    does not count, or the reverse.
+    """
+    meta_file = os.path.join(data_dir, "metadata.json")
+    try:
+        episodes, steps = int(ds.total_episodes), int(ds.total_steps)
+        data_format = ds.storage.metadata.get("data_format", "hdf5")
+    except (KeyError, TypeError, ValueError) as err:
+        raise CLIError(f"{meta_file!r}: no valid episode / step counts ({type(err).__name__}: {err})") from None
+    data_file = os.path.join(data_dir, "main_data.hdf5")
+    if data_format != "hdf5" or not os.path.isfile(data_file):
+        return
+    import h5py
+
+    try:
+        with h5py.File(data_file, "r") as f:
+            names = set(f.keys())
+            expected = {f"episode_{i}" for i in range(episodes)}
+            missing = sorted(expected - names, key=lambda n: int(n.rsplit("_", 1)[1]))
+            held = sum(int(f[n].attrs.get("total_steps", 0)) for n in expected & names)
+            held_all = sum(int(f[n].attrs.get("total_steps", 0)) for n in names)
+    except Exception as err:  # noqa: BLE001 - h5py's errors on a truncated file are OSError, KeyError, ...
+        raise CLIError(f"{data_file!r} cannot be read ({type(err).__name__}: {err}): the dataset was cut off or "
+                       f"damaged; export it again") from None
+    if missing or len(names) != episodes or held != steps:
+        raise CLIError(
+            f"{meta_file!r} lists {episodes} episodes ({steps} steps) but {data_file!r} holds {len(names)} "
+            f"episodes ({held_all} steps{'; missing ' + ', '.join(missing[:3]) if missing else ''}): the export "
+            f"was cut off or the files were changed; export it again"
+        )
 
 
 def import_minari(src: str, path: str, *, max_size: int | None = None, env: str | None = None) -> int:
@@ -400,6 +575,10 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
     with ``env`` (default: the env the export recorded per episode, else the
     dataset's env id).
 
+    A dataset whose files disagree (``metadata.json`` against the episodes in
+    ``main_data.hdf5``: a cut-off export) or cannot be read is refused with a
+    :class:`CLIError` naming the file and the episode; nothing is created.
+
     Args:
         src (str): the dataset directory (``ROOT/NAME-vN`` or its ``data/``), or a
             dataset id under ``MINARI_DATASETS_PATH`` (never downloaded).
@@ -413,15 +592,16 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
     from tensordict import TensorDict
     from torchrl.data import ReplayBuffer
 
-
     _check_target(path)
-    ds = _open_minari(src)
+    ds, data_dir = _open_minari(src)
     meta = ds.storage.metadata.get("torchrl_robotmem") or {}
     schema = meta.get("schema") or {}
     env_names = meta.get("env_names") or []
     episode_env = meta.get("episode_env")
     spec_env = getattr(getattr(ds.spec, "env_spec", None), "id", None)
     steps = int(ds.total_steps)
+    if steps == 0 and not max_size:
+        raise CLIError(f"{src!r} holds no steps: nothing to import (pass --max-size N to create an empty memory)")
     capacity = int(max_size or steps)
     if capacity < steps:
         raise CLIError(f"--max-size {capacity} is smaller than the {steps} steps of {src!r}")
@@ -435,37 +615,60 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
             return t.to(torch_dtype(spec["dtype"])).reshape(len(t), *spec["shape"])
         return t.to(dtype).reshape(len(t), *shape) if dtype is not None else t
 
+    def transitions(ep) -> TensorDict | None:
+        T = len(ep.actions) if not isinstance(ep.actions, dict) else len(next(iter(ep.actions.values())))
+        if T == 0:
+            return None
+        obs = ep.observations if isinstance(ep.observations, dict) else {"observation": ep.observations}
+        term = np.asarray(ep.terminations, bool).reshape(T)
+        trunc = np.asarray(ep.truncations, bool).reshape(T).copy()
+        if not (term[-1] or trunc[-1]):
+            trunc[-1] = True
+        td = {"action": cast("action", np.asarray(ep.actions), None, None),
+              "done": torch.zeros(T, 1, dtype=torch.bool)}
+        nxt = {"reward": cast("next/reward", np.asarray(ep.rewards), torch.float32, (1,)),
+               "terminated": cast("next/terminated", term, torch.bool, (1,)),
+               "truncated": cast("next/truncated", trunc, torch.bool, (1,)),
+               "done": cast("next/done", term | trunc, torch.bool, (1,))}
+        for k, v in obs.items():
+            v = np.asarray(v)
+            if len(v) != T + 1:
+                raise ValueError(f"observations {k!r} hold {len(v)} steps, an episode of {T} actions needs {T + 1}")
+            td[k] = cast(k, v[:-1], None, None)
+            nxt[k] = cast(f"next/{k}", v[1:], None, None)
+        infos = ep.infos or {}
+        succ = infos.get("is_success", infos.get("success"))
+        if succ is not None and len(succ) == T + 1:
+            nxt["is_success"] = cast("next/is_success", np.asarray(succ)[1:], torch.float32, ())
+        td["next"] = nxt
+        return TensorDict(td, batch_size=[T])
+
+    episodes = ds.iterate_episodes()
+    where = os.path.join(data_dir, "main_data.hdf5") if os.path.isfile(os.path.join(data_dir, "main_data.hdf5")) \
+        else data_dir
     with _new_store(path, capacity, background=True) as storage:
         rb = ReplayBuffer(storage=storage, batch_size=1)
-        for i, ep in enumerate(_progress(ds.iterate_episodes(), total=ds.total_episodes, desc="import", unit="episode")):
-            T = len(ep.actions) if not isinstance(ep.actions, dict) else len(next(iter(ep.actions.values())))
-            if T == 0:
-                continue
-            obs = ep.observations if isinstance(ep.observations, dict) else {"observation": ep.observations}
-            term = np.asarray(ep.terminations, bool).reshape(T)
-            trunc = np.asarray(ep.truncations, bool).reshape(T).copy()
-            if not (term[-1] or trunc[-1]):
-                trunc[-1] = True
-            td = {"action": cast("action", np.asarray(ep.actions), None, None),
-                  "done": torch.zeros(T, 1, dtype=torch.bool)}
-            nxt = {"reward": cast("next/reward", np.asarray(ep.rewards), torch.float32, (1,)),
-                   "terminated": cast("next/terminated", term, torch.bool, (1,)),
-                   "truncated": cast("next/truncated", trunc, torch.bool, (1,)),
-                   "done": cast("next/done", term | trunc, torch.bool, (1,))}
-            for k, v in obs.items():
-                v = np.asarray(v)
-                td[k] = cast(k, v[:-1], None, None)
-                nxt[k] = cast(f"next/{k}", v[1:], None, None)
-            infos = ep.infos or {}
-            succ = infos.get("is_success", infos.get("success"))
-            if succ is not None and len(succ) == T + 1:
-                nxt["is_success"] = cast("next/is_success", np.asarray(succ)[1:], torch.float32, ())
-            td["next"] = nxt
-            name = env
-            if name is None and episode_env is not None and i < len(episode_env) and 0 <= episode_env[i] < len(env_names):
-                name = env_names[episode_env[i]]
-            storage.env = name if name is not None else spec_env
-            rb.extend(TensorDict(td, batch_size=[T]))
+        for i in _progress(range(ds.total_episodes), desc="import", unit="episode"):
+            try:
+                ep = next(episodes)
+            except StopIteration:
+                raise CLIError(f"{src!r}: episode {i} is missing ({ds.total_episodes} listed): a cut-off "
+                               f"export? Export it again") from None
+            except Exception as err:  # noqa: BLE001 - minari / h5py on a damaged file: one line, no traceback
+                raise CLIError(f"{src!r}: episode {i} cannot be read from {where!r} ({type(err).__name__}: "
+                               f"{err}); the dataset was cut off or damaged: export it again") from None
+            try:
+                td = transitions(ep)
+                if td is None:
+                    continue
+                name = env
+                if (name is None and episode_env is not None and i < len(episode_env)
+                        and 0 <= episode_env[i] < len(env_names)):
+                    name = env_names[episode_env[i]]
+                storage.env = name if name is not None else spec_env
+                rb.extend(td)
+            except (ValueError, TypeError, KeyError, IndexError, RuntimeError) as err:
+                raise CLIError(f"{src!r}: episode {i} cannot be imported ({type(err).__name__}: {err})") from None
         rows = len(storage)
     return rows
 

@@ -3,7 +3,9 @@
 ``robotmem verify PATH [--json]`` reads every chunk below the committed length
 (checksums verified where the store has them), every array's metadata and the
 commit record, and prints what is wrong. Exit status: 0 intact, 1 damaged,
-2 not a memory. Nothing is written.
+2 not a memory. Nothing is written. The hidden ``.NAME.partial-PID`` build of
+an interrupted ``import`` / ``export`` is never intact (exit 1), and a missing
+``NAME`` beside such a build says so (exit 2).
 
 ``robotmem repair PATH [--dry-run] [--json]`` backs the metadata up into
 ``PATH/_repair_backup/<time>/``, rebuilds damaged metadata, and truncates the
@@ -50,6 +52,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from torchrl_robotmem.storage.integrity import IntegrityError, NotAMemoryError, repair, verify
 
+    from ._memory import incomplete_build_error
+
+    incomplete = incomplete_build_error(args.path, code=1)
+    if incomplete is not None:
+        raise incomplete
     try:
         if args.command == "verify":
             report = verify(args.path)
