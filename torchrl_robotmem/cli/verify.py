@@ -12,8 +12,11 @@ an interrupted ``import`` / ``export`` is never intact (exit 1), and a missing
 committed length before the first damaged chunk (rows after it are dropped,
 never invented; see :func:`torchrl_robotmem.storage.integrity.repair`). Exit
 status: 0 when the store verifies clean afterwards (or needed nothing), 1 when
-damage remains (or ``--dry-run`` found some), 2 not a memory. No process may
-be writing the store.
+damage remains (or ``--dry-run`` found some, or it refused), 2 not a memory.
+It takes the writer lock first: a process writing the store is an error naming
+it. It refuses, changing nothing, a store whose records point outside it (a
+schema key with ``..``, a symbolic link) or disagree (an array's ``zarr.json``
+against the schema: both are named; restore the right one from a copy).
 
 Example:
     >>> import tempfile, torch
