@@ -337,6 +337,18 @@ def test_tag_columns_are_input_only_where_they_carry_the_storage_meaning(tmp_pat
         assert len(st) == ROWS + 4 and torch.equal(st["observation"][ROWS:ROWS + 4], st["observation"][:4])
     finally:
         st.close()
+    # a tensorclass carries no tags: its own `episode` field was dropped silently; now refused
+    from tensordict import tensorclass
+
+    @tensorclass
+    class Step:
+        observation: torch.Tensor
+        episode: torch.Tensor
+
+    with ZarrStorage(tmp_path / "tc.zarr", 10, background=False) as tc:
+        with pytest.raises(ValueError, match="'episode' is a tag column"):
+            tc.set(slice(0, 3), Step(observation=torch.zeros(3, 2), episode=torch.arange(3), batch_size=[3]))
+        assert not tc.initialized and len(tc) == 0
 
 
 def test_nan_goals_are_stored_and_never_recalled(ctx: Ctx):
