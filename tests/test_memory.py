@@ -214,14 +214,16 @@ def test_reward_and_success_are_checked_like_the_observation(tmp_path, bad):
 
 
 def test_recall_top_k_far_above_the_rows(tmp_path):
-    """top_k = 10**12 on a memory of 3 rows (capacity 10**6): 3 results, nothing allocated for the rest."""
-    with RobotMemory(tmp_path / "m.zarr", max_size=10**6, background=False) as mem:
+    """top_k = 10**12 on a memory of 3 rows (capacity 100): 100 slots, the 3 rows first; nothing allocated for k."""
+    with RobotMemory(tmp_path / "m.zarr", max_size=100, background=False) as mem:
+        assert mem.recall([0.0, 0.0, 0.0], top_k=10**12)["mask"].shape == (100,)  # empty: the same shape
         for t in range(3):
             mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {"achieved_goal": [0.1 * t, 0, 0],
                                                                   "desired_goal": [1, 0, 0], "is_success": t == 2})
         out = mem.recall([0.0, 0.0, 0.0], top_k=10**12)
-        assert out.batch_size == (3,) and out["index"].tolist() == [0, 1, 2] and out["mask"].all()
+        assert out.batch_size == (100,) and out["index"][:4].tolist() == [0, 1, 2, -1]
+        assert out["mask"].sum() == 3 and out["mask"][:3].all()
         succ = mem.recall([0.0, 0.0, 0.0], top_k=10**12, success_only=True)
-        assert succ["mask"].tolist() == [True, False, False] and succ["index"].tolist() == [2, -1, -1]
-        batch = mem.recall(np.zeros((2, 3)), top_k=10**12)
-        assert batch.batch_size == (2, 3)
+        assert succ["mask"].sum() == 1 and succ["index"][:2].tolist() == [2, -1]
+        assert mem.recall(np.zeros((2, 3)), top_k=10**12).batch_size == (2, 100)
+        assert mem.recall(np.zeros(3), top_k=5).batch_size == (5,)  # below the capacity: top_k slots, as always

@@ -202,7 +202,7 @@ def test_fewer_matches_than_k_are_masked_zeros():
 def test_empty_storage_gives_masked_result():
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
     out = GoalIndex(rb).recall(torch.zeros(3), k=4)
-    assert out.batch_size == torch.Size([0]) and not out["mask"].any()  # k is clamped to the rows stored
+    assert out.batch_size == torch.Size([4]) and not out["mask"].any()
     assert (out["index"] == -1).all() and torch.isinf(out["distance"]).all()
     rb, gen = make_rb(50)
     index = GoalIndex(rb)
@@ -441,15 +441,18 @@ def test_index_pickles_and_rebuilds_lazily():
 
 # -- k above the rows stored ------------------------------------------------------
 @pytest.mark.parametrize("backend", ["kdtree", "brute"])
-def test_k_far_above_the_rows_is_clamped_to_them(backend):
-    """``k`` = 10**12 over 60 rows: the result has 60 columns, the rows passing the filter first.
+def test_k_far_above_the_rows_is_clamped_to_the_capacity(backend):
+    """``k`` = 10**12 over 60 rows of a 100-row storage: 100 columns (no query can match more), the 60 rows first.
 
-    Before the clamp the index allocated ``[B, k]`` arrays (numpy raised MemoryError
-    for 10**12; k = 10**8 was the probe's gigabytes).
+    The width depends on ``k`` and the capacity only, never on how many rows are
+    stored (a policy sized on ``top_k`` keeps its shapes from the first, empty
+    step); the search works on the rows that pass the filter. Before the clamp
+    the index allocated ``[B, k]`` arrays (numpy raised MemoryError for 10**12;
+    10**8 was the probe's gigabytes).
     """
     import tracemalloc
 
-    rb, gen = make_rb(60, capacity=1000)
+    rb, gen = make_rb(60, capacity=100)
     index = GoalIndex(rb, backend=backend)
     queries = torch.rand(4, 3, generator=gen)
     huge = 10**12
@@ -462,18 +465,21 @@ def test_k_far_above_the_rows_is_clamped_to_them(backend):
     finally:
         tracemalloc.stop()
     assert peak < 8 << 20, f"{peak} bytes traced for a search over 60 rows"
-    assert dist.shape == idx.shape == mask.shape == (4, 60) and mask.all()
-    assert_exact(index, rb, queries, 60)  # k = the rows stored: the same answer as brute force
-    assert torch.equal(idx, index.search(queries, 60)[1])
-    # the filter: 60 columns, as many unmasked as rows pass it, the rest -1 / inf
+    assert dist.shape == idx.shape == mask.shape == (4, 100) and mask.sum(1).tolist() == [60] * 4
+    assert_exact(index, rb, queries, 100)  # the same answer as brute force with k = the capacity
+    assert torch.equal(idx, index.search(queries, 100)[1])
+    # the filter: as many unmasked as rows pass it, the rest -1 / inf / zeros
     success = column(rb, ("next", "is_success")) > 0.5
-    assert out.batch_size == (60,) and int(out["mask"].sum()) == int(success.sum()) > 0
+    assert out.batch_size == (100,) and int(out["mask"].sum()) == int(success.sum()) > 0
     assert set(out["index"][out["mask"]].tolist()) == set(success.nonzero().squeeze(-1).tolist())
     assert (out["index"][~out["mask"]] == -1).all() and torch.isinf(out["distance"][~out["mask"]]).all()
-    # one_per_episode: one column per stored row, as many unmasked as there are episodes (rows 0..59: 2)
+    assert not out["observation"][~out["mask"]].any()
+    # one_per_episode: one unmasked column per episode (rows 0..59: 2)
     d_ep, i_ep, m_ep = per_episode
-    assert m_ep.shape == (4, 60) and m_ep.sum(1).tolist() == [2] * 4
+    assert m_ep.shape == (4, 100) and m_ep.sum(1).tolist() == [2] * 4
     assert (column(rb, "episode")[i_ep[m_ep].reshape(4, 2)].sort(1).values == torch.tensor([0, 1])).all()
-    # the module function and k just above the rows
-    assert recall(rb, queries, 61)["index"].shape == (4, 60)
-    assert recall(rb, queries, 59)["index"].shape == (4, 59)  # below the rows: k columns, unchanged
+    # the module function, k around the capacity, and an empty storage: the shape follows k and max_size only
+    assert recall(rb, queries, 101)["index"].shape == (4, 100)
+    assert recall(rb, queries, 99)["index"].shape == (4, 99)
+    empty = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
+    assert GoalIndex(empty).search(queries, huge)[2].shape == (4, 100)

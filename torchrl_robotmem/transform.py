@@ -280,7 +280,7 @@ class RecallTransform(Transform):
         if n and self._memory_len():
             # search + the few columns needed: GoalIndex.recall would gather every stored key.
             dist, index, mask = self.index.search(flat, k, filter=self._filter, one_per_episode=self.one_per_episode)
-            if mask.shape[-1] < k:  # fewer rows stored than k: the index returns that many, the spec has k
+            if mask.shape[-1] < k:  # k above the storage's capacity: the index returns max_size, the spec has k
                 w = mask.shape[-1]
                 dist = torch.cat([dist, dist.new_full((n, k - w), float("inf"))], -1)
                 index = torch.cat([index, index.new_full((n, k - w), -1)], -1)

@@ -289,8 +289,9 @@ class GoalIndex:
 
         Args:
             goal: ``[goal_dim]`` or ``[B, goal_dim]`` (tensor, array or list).
-            k (int): number of neighbours (>= 1). Clamped to the rows stored:
-                a ``k`` above them costs no more than ``k`` equal to them.
+            k (int): number of neighbours (>= 1). Clamped to the storage's
+                capacity (``max_size``: no query can match more rows), and the
+                search itself to the rows that pass the filter.
 
         Keyword Args:
             filter (RowFilter, optional): the filters as one value (instead of
@@ -305,12 +306,13 @@ class GoalIndex:
 
         Returns:
             ``distance`` (float32), ``index`` (int64 storage row) and ``mask``
-            (bool), each ``[w]`` or ``[B, w]`` with ``w = min(k, rows stored)``
-            (``w = k`` whenever the storage holds ``k`` rows or more; an empty
-            storage gives ``w = 0``), nearest first. Missing matches (fewer rows
-            pass the filter or ``max_distance``) have ``mask=False``,
-            ``distance=inf`` and ``index=-1``; the search itself never asks for
-            more than the rows that pass the filter.
+            (bool), each ``[w]`` or ``[B, w]`` with ``w = min(k, max_size)``
+            (``k`` for any ``k`` the storage could ever answer: the shape does
+            not depend on how many rows are stored), nearest first. Missing
+            matches (fewer rows stored, passing the filter or within
+            ``max_distance``) have ``mask=False``, ``distance=inf`` and
+            ``index=-1``; nothing is searched or allocated beyond ``w`` and the
+            rows that pass the filter.
         """
         k = _check_k(k)
         max_d = _check_max_distance(max_distance)
@@ -321,11 +323,12 @@ class GoalIndex:
             self._sync()
             q, batched = self._parse_goal(goal)
             Q = q.shape[0]
-            # k is clamped to the rows stored (the width of the result) and to the rows
-            # passing the filter (the search): nothing is allocated for rows that do not exist
-            width = min(k, self._tracker.n) if self._tracker.goal_shape is not None else 0
+            # k is clamped to the rows that can exist (the width of the result, fixed for a
+            # given k and storage: callers size specs on it) and to the rows passing the
+            # filter (the search): a k far above them allocates nothing for it
+            width = min(k, int(self.storage.max_size))
             kk = 0
-            if width and Q:
+            if width and Q and self._tracker.goal_shape is not None and self._tracker.n:
                 if one_per_episode:
                     self._tracker.track(self.episode_key, "one_per_episode")
                 view = self._view(key)
@@ -358,7 +361,7 @@ class GoalIndex:
         """The k stored transitions whose goals are nearest to ``goal``, with their context.
 
         Same arguments as :meth:`search`. Returns a TensorDict of batch ``[w]``
-        (or ``[B, w]``), ``w = min(k, rows stored)``, with every stored key of
+        (or ``[B, w]``), ``w = min(k, max_size)``, with every stored key of
         those rows (observation, action, goals, ``"next"`` entries, tags...)
         plus ``distance`` (float32), ``mask`` (bool) and ``index`` (int64
         storage row). Masked entries hold zeros.
