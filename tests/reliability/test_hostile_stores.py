@@ -309,3 +309,14 @@ def test_len_far_past_the_chunk_files_costs_what_the_store_holds(stores):
     out = _in_child(a, "repair")
     assert out["result"] == "error" and "attribute 'max_size' (10000000000000)" in out["message"], out
     assert _hash_tree(stores) == before
+
+
+@pytest.mark.parametrize("version", [[1], "1", None, True])
+def test_malformed_format_marker_is_refused_naming_it(stores, version):
+    a = str(stores / "a.zarr")
+    _edit_attrs(a, lambda attrs: attrs["torchrl_robotmem"].update(format_version=version))
+    before = _hash_tree(stores)
+    for read_only in (True, False):
+        with pytest.raises(ValueError, match=r"malformed 'torchrl_robotmem' attribute \(format_version"):
+            ZarrStorage(a, read_only=read_only)
+    assert _hash_tree(stores) == before
