@@ -104,6 +104,14 @@ def test_create_extend_reopen_resume(s3_url, s3_server):
     assert copy.read_only and len(copy) == 250
 
 
+def _lease_age(client, bucket: str, key: str) -> float:
+    """Seconds since the lease object was last written, on the server's clock."""
+    from email.utils import parsedate_to_datetime
+
+    head = client.head_object(Bucket=bucket, Key=key + ".writer-lease")
+    return (parsedate_to_datetime(head["ResponseMetadata"]["HTTPHeaders"]["date"]) - head["LastModified"]).total_seconds()
+
+
 def test_writer_lease(s3_url, s3_server, monkeypatch):
     so = s3_server.storage_options
     client = s3_server.client()
@@ -123,10 +131,16 @@ def test_writer_lease(s3_url, s3_server, monkeypatch):
     # a dead writer's lease (not renewed for ttl seconds) is taken over; of two racers one wins
     dead = S3Lease(s3_url, so, ttl=1.0)
     dead._stop.set()  # the holder dies: no more renewals, no release
-    with pytest.raises(RuntimeError, match="holds the writer lease"):
-        S3Lease(s3_url, so)
-    time.sleep(2.2)  # Last-Modified has a one-second resolution
-    taker = S3Lease(s3_url, so, ttl=1.0)
+    dead._thread.join()  # (a renewal in flight lands before this returns)
+    # until the server's clock says the lease is older than its ttl (Last-Modified has a
+    # one-second resolution): an event on the server, not a time on this machine
+    deadline = time.monotonic() + 60
+    while (age := _lease_age(client, bucket, key)) <= dead.ttl:
+        assert time.monotonic() < deadline, f"the lease never aged past its ttl (age {age} s)"
+        time.sleep(0.1)
+    taker = S3Lease(s3_url, so)  # renewed every 10 s (ttl 30 s): live for the next check
+    assert json.loads(client.get_object(Bucket=bucket, Key=key + ".writer-lease")["Body"].read())["owner"] == (
+        taker._body["owner"]), "the stale lease was not taken over"
     with pytest.raises(RuntimeError, match="holds the writer lease"):
         S3Lease(s3_url, so)
     taker.release()
@@ -226,13 +240,20 @@ def test_reader_while_writer_appends_then_sigkill_mid_commit(s3_url, s3_server, 
     proc = _start_writer(s3_url, s3_server, "midcommit")
     try:
         reader = ZarrStorage(s3_url, read_only=True, storage_options=so)
-        seen = [len(reader)]
-        for _ in range(3):  # while the child appends and commits
+        seen, checked = [len(reader)], 0
+        deadline = time.monotonic() + 120
+        # while the child appends and commits (it hangs in its 5th commit): refresh until rows
+        # were seen, at least three times
+        while not checked or len(seen) <= 3:
+            assert time.monotonic() < deadline and proc.poll() is None, (
+                f"the reader saw no committed rows (lens {seen[-10:]})", proc.stderr.read()[-3000:] if proc.poll() else "")
             n = reader.refresh()
             assert n >= seen[-1]
-            if n:
+            if n:  # (the loop goes on until some were: asserted below)
                 _assert_rows(reader, n)  # every refresh: a committed prefix, bit-exact
+            checked += n
             seen.append(n)
+        assert checked > 0, "no row was checked"
         line = proc.stdout.readline()  # waits for the hung 5th commit
         assert line.strip() == "MID", (line, proc.stderr.read()[-3000:] if proc.poll() is not None else "")
         committed = reader.refresh()
