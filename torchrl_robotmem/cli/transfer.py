@@ -140,18 +140,31 @@ def _atomic_target(path: str, *, inner: str | None = None) -> Iterator[str]:
     ``KeyboardInterrupt``, the sibling is removed; a SIGKILL leaves it, and the
     next command on ``path`` removes it.
     """
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    parent = os.path.dirname(os.path.abspath(path))
+    missing = []  # the directories made for the target, deepest first: removed again if it is not made
+    d = parent
+    while not os.path.isdir(d) and os.path.dirname(d) != d:
+        missing.append(d)
+        d = os.path.dirname(d)
+    os.makedirs(parent, exist_ok=True)
     _remove_stale_partials(path)
     tmp = partial_path(path)
     if os.path.lexists(tmp):  # this pid's own leftover (pids are reused): no live process owns it
         _remove(tmp)
+    done = False
     try:
         yield tmp
         _check_target(path)  # created meanwhile by someone else: theirs is kept
         os.rename(os.path.join(tmp, inner) if inner else tmp, path)
+        done = True
     finally:
         if os.path.lexists(tmp):
             _remove(tmp)
+        for d in missing if not done else ():
+            try:
+                os.rmdir(d)
+            except OSError:  # not empty: something else was put there meanwhile
+                break
 
 
 def _path(key: Any) -> str:
