@@ -144,6 +144,40 @@ def test_exact_after_appends_ring_overwrites_and_inplace_writes():
 
 
 @pytest.mark.parametrize("backend", ["kdtree", "brute"])
+@pytest.mark.parametrize("flt", ["success_only", "env", "run"])
+def test_filtered_views_exact_after_ring_overwrites(flt, backend):
+    """Filtered views through a ring overwriting 200 rows at a time, incrementally.
+
+    An overwritten row leaves the segment that held it, whether or not its new
+    contents pass the filter: a row that stops passing must not be served with
+    its old goal (the unfiltered view cannot show this: every changed row
+    re-enters it).
+    """
+    rb, gen = make_rb(3000, capacity=4000)
+    index = GoalIndex(rb, env_names=ENV_NAMES, backend=backend, tail_size=128, rebuild_fraction=0.4)
+    queries = torch.rand(32, 3, generator=gen)
+    kw = {"success_only": {"success_only": True}, "env": {"env": "FetchSlide-v4"}, "run": {"run": 1}}[flt]
+
+    def keep():
+        return {"success_only": column(rb, ("next", "is_success")) > 0.5, "env": column(rb, "env") == 1,
+                "run": column(rb, "run") == 1}[flt]
+
+    assert_exact(index, rb, queries, 5, keep=keep(), **kw)
+    (key,) = [k for k in index._views if k != (False, None, None)]
+    seen_levels, builds = set(), []
+    for step in range(21):  # fills up, then overwrites the ring round-robin
+        rb.extend(fetch_rows(200, gen, start=3000 + 200 * step))
+        assert_exact(index, rb, queries, 5, keep=keep(), **kw)
+        view = index._views[key]
+        seen_levels.update(name for name in ("mid", "live") if getattr(view, name) is not None)
+        seen_levels.update({"stale"} if view.main.n_stale else set())
+        builds.append(view.builds)
+    assert rb.storage._is_full
+    assert seen_levels == {"mid", "live", "stale"}, seen_levels  # every incremental path ran
+    assert builds[-1] < len(builds), builds  # most steps were incremental, not rebuilds
+
+
+@pytest.mark.parametrize("backend", ["kdtree", "brute"])
 def test_filters_match_brute_force(backend):
     rb, gen = make_rb(3000, capacity=3500)
     index = GoalIndex(rb, env_names=ENV_NAMES, backend=backend, tail_size=200)
