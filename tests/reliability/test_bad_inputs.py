@@ -456,6 +456,8 @@ def test_damaged_store_is_a_clear_error(ctx: Ctx, damage, read_only):
     ctx.st.close()
     damage_fn(ctx.path)
     files = _hashes(ctx.path)
-    with pytest.raises(Exception, match=re.compile(match, re.S)):
+    from torchrl_robotmem.storage.integrity import IntegrityError  # (the error docs/reliability.md names)
+
+    with pytest.raises(IntegrityError, match=re.compile(match, re.S)):
         ZarrStorage(ctx.path, read_only=read_only)
     assert _hashes(ctx.path) == files, "opening a damaged store changed it"
