@@ -365,19 +365,26 @@ def test_env_names_from_data(tmp_path, transitions):
 # -- TorchRL buffers ----------------------------------------------------------
 
 
-def test_plain_and_prioritized_buffers(tmp_path, transitions):
+def test_plain_buffer(tmp_path, transitions):
+    """A plain ReplayBuffer over ZarrStorage (the prioritized one: test_prioritized_buffer)."""
     with ZarrStorage(tmp_path / "a.zarr", 100) as s:
         rb = ReplayBuffer(storage=s, batch_size=4)
         rb.extend(transitions(10))
         rb.add(transitions(1, start=10)[0])
-        assert len(rb) == 11 and rb.sample().shape == (4,)
-        assert s["observation"][10, 0] == 10
+        assert len(rb) == 11
+        want = transitions(11)
+        assert torch.equal(s[:11]["observation"], want["observation"])
+        batch, info = rb.sample(return_info=True)
+        assert batch.shape == (4,)
+        assert torch.equal(batch["observation"], want["observation"][torch.as_tensor(info["index"])])
+
 
 def test_prioritized_buffer(tmp_path, transitions):
     try:
         TensorDictPrioritizedReplayBuffer(alpha=0.7, beta=0.5, storage=LazyTensorStorage(4))
     except RuntimeError as err:  # torchrl's C++ segment trees do not load against this torch
-        pytest.skip(f"PrioritizedSampler unavailable in this install: {err}")
+        pytest.skip(f"PrioritizedSampler unavailable: torchrl's C++ extension does not load against torch "
+                    f"{torch.__version__} ({err})")
     with ZarrStorage(tmp_path / "b.zarr", 100) as s:
         rb = TensorDictPrioritizedReplayBuffer(alpha=0.7, beta=0.5, storage=s, batch_size=16)
         rb.extend(transitions(50))
