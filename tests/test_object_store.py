@@ -36,7 +36,7 @@ from pathlib import Path
 import pytest
 import torch
 from _s3 import new_bucket, s3_server, s3_url  # noqa: F401  (pytest fixtures)
-from conftest import make_transitions
+from conftest import make_transitions, seed_from_env
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_robotmem import ZarrStorage
@@ -167,7 +167,7 @@ import json, os, sys, time
 sys.path.insert(0, sys.argv[1])
 import torch
 torch.set_num_threads(1)
-from conftest import make_transitions
+from conftest import make_transitions, seed_from_env
 from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.storage.commit import CommitEngine
@@ -280,24 +280,30 @@ def test_reader_while_writer_appends_then_sigkill_mid_commit(s3_url, s3_server, 
 def test_sigkill_at_random_moments(s3_url, s3_server, monkeypatch):
     """Kills at random moments of a sustained append (timed commits every 0.2 s).
 
-    ``S3_KILL_TESTS=<n>`` runs it with ``n`` kills; ``CRASH_SEED`` replays a schedule.
+    ``S3_KILL_TESTS=<n>`` runs it with ``n`` kills, each after the writer committed rows;
+    ``CRASH_SEED`` (else ``ROBOTMEM_TEST_SEED``, default 0) replays a schedule.
     """
     so = s3_server.storage_options
     monkeypatch.setenv("TORCHRL_ROBOTMEM_LEASE_TTL", "1")
-    seed = int(os.environ.get("CRASH_SEED", random.randrange(1 << 30)))
+    seed = seed_from_env("CRASH_SEED")
+    print(f"CRASH_SEED={seed}")
     rng = random.Random(seed)
     ZarrStorage(s3_url, 100_000, chunk_rows=256, storage_options=so).close()
+    reader = ZarrStorage(s3_url, read_only=True, storage_options=so)
     before, closed = 0, set()
     for _ in range(max(1, int(os.environ.get("S3_KILL_TESTS", "2")))):
         proc = _start_writer(s3_url, s3_server, "append")
-        time.sleep(rng.uniform(0.3, 2.0))
+        deadline = time.monotonic() + 120
+        while reader.refresh() <= before:  # the writer committed rows: the kill lands after progress
+            assert time.monotonic() < deadline and proc.poll() is None, f"the writer committed nothing (CRASH_SEED={seed})"
+            time.sleep(0.05)
+        time.sleep(rng.uniform(0.0, 1.5))
         proc.send_signal(signal.SIGKILL)
         proc.wait()
         storage = _reopen_writer(s3_url, so)
         n = len(storage)
-        assert n >= before, f"len went back from {before} to {n} (CRASH_SEED={seed})"
+        assert n > before, f"len went from {before} to {n} (CRASH_SEED={seed})"
         closed |= _cut(n)
-        if n:
-            _assert_rows(storage, n, closed)
+        _assert_rows(storage, n, closed)
         storage.close()  # (a reopen closes the cut episode: the next child continues from there)
         before = n
