@@ -307,3 +307,44 @@ def test_sigkill_at_random_moments(s3_url, s3_server, monkeypatch):
         _assert_rows(storage, n, closed)
         storage.close()  # (a reopen closes the cut episode: the next child continues from there)
         before = n
+
+
+APPEND_SRC = r'''
+import json, sys
+sys.path.insert(0, sys.argv[1])
+from conftest import make_transitions
+from torchrl.data import TensorDictReplayBuffer
+from torchrl_robotmem import ZarrStorage
+storage = ZarrStorage(sys.argv[2], storage_options=json.loads(sys.argv[3]))
+rb = TensorDictReplayBuffer(storage=storage)
+n = len(rb)
+rb.extend(make_transitions(int(sys.argv[4]), n))
+storage.close()
+'''
+
+
+def test_chunks_written_by_another_process_after_a_listing_are_read(s3_url, s3_server):
+    """A listing made in this process never hides chunk files another process wrote later.
+
+    fsspec caches one filesystem object per set of options, and in it every
+    directory listing: a reader's open-time chunk listing, reused by a later
+    ``refresh()`` or by a writable open in the same process, made s3fs read the
+    chunks written since as missing and Zarr serve zeros (rows 256 on, here;
+    seen as a flaky ``test_reader_while_writer_appends_then_sigkill_mid_commit``).
+    """
+    so = s3_server.storage_options
+    ZarrStorage(s3_url, 10_000, chunk_rows=64, storage_options=so).close()
+    first = subprocess.run([sys.executable, "-c", APPEND_SRC, str(TESTS), s3_url, json.dumps(so), "100"],
+                           capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr[-3000:]
+    reader = ZarrStorage(s3_url, read_only=True, storage_options=so)  # lists chunks 0-1
+    _assert_rows(reader, 100)
+    more = subprocess.run([sys.executable, "-c", APPEND_SRC, str(TESTS), s3_url, json.dumps(so), "300"],
+                          capture_output=True, text=True, timeout=300)
+    assert more.returncode == 0, more.stderr[-3000:]
+    assert reader.refresh() == 400
+    _assert_rows(reader, 400)
+    _assert_rows(ZarrStorage(s3_url, read_only=True, storage_options=so), 400)
+    writer = ZarrStorage(s3_url, storage_options=so)  # closes the episode the last writer left open
+    _assert_rows(writer, 400, {399})
+    writer.close()

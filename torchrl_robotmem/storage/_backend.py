@@ -138,6 +138,19 @@ def store_exists(path: str | os.PathLike | Any) -> bool:
     return os.path.exists(os.path.join(name, "zarr.json"))
 
 
+def fresh_listings(storage_options: dict | None) -> dict:
+    """fsspec options for a store URL: no directory listing is reused, no filesystem instance shared.
+
+    fsspec caches one filesystem object per set of options and, in it, every
+    directory listing it made. A listing cached by one handle (a reader's
+    open-time chunk check) would tell another handle in the same process, or
+    the same reader after a ``refresh()``, that chunk files written since do
+    not exist: s3fs then reads such a chunk as missing, and Zarr serves the
+    fill value (zeros). Options the user passes win.
+    """
+    return {"use_listings_cache": False, "skip_instance_cache": True, **(storage_options or {})}
+
+
 def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_options: dict | None):
     """Returns ``(store_or_path, local_dir)``.
 
@@ -156,7 +169,7 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
     if is_url(spath):
         from zarr.storage import FsspecStore
 
-        return FsspecStore.from_url(spath, storage_options=storage_options, read_only=read_only), None
+        return FsspecStore.from_url(spath, storage_options=fresh_listings(storage_options), read_only=read_only), None
     p = Path(spath)
     if p.exists() and not p.is_dir():
         raise ValueError(
@@ -388,7 +401,7 @@ class S3Lease:
         self.ttl = float(ttl if ttl is not None else os.environ.get(_LEASE_TTL_ENV, _LEASE_TTL))
         if self.ttl <= 0:
             raise ValueError(f"The lease ttl must be > 0 seconds ({_LEASE_TTL_ENV}), got {self.ttl}.")
-        self._fs, path = fsspec.url_to_fs(url, **(storage_options or {}))
+        self._fs, path = fsspec.url_to_fs(url, **fresh_listings(storage_options))
         self.bucket, key, _ = self._fs.split_path(path)
         self.key = f"{key.rstrip('/')}.writer-lease" if key else "torchrl_robotmem.writer-lease"
         self.url = f"s3://{self.bucket}/{self.key}"
