@@ -344,7 +344,9 @@ def test_an_orphaned_worker_of_a_dead_writer_is_killed_and_the_lock_taken_over(t
 _DISK_FULL = """
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG
     worker = MODE.startswith("worker")
-    kw = dict(max_size=10_000, chunk_rows=64)
+    # one chunk for every row and no commit timer: the only commits are the explicit flushes, so
+    # no background commit can fail (and refuse an extend) while the rows are extended
+    kw = dict(max_size=10_000, chunk_rows=10_000, commit_interval=3600)
     st = open_with_worker(**kw) if worker else ZarrStorage(PATH, commit_process=False, **kw)
     rb = TensorDictReplayBuffer(storage=st, batch_size=4)
     for i in range(4):
