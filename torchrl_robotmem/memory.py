@@ -182,7 +182,7 @@ class RobotMemory:
         if env is not None:
             self.storage.env = str(env)
         if new_goal:
-            self.storage._close_episode_at(self._prev_row)
+            self.storage.close_episode_at(self._prev_row)
             self._prev = None
         row = int(self.buffer.add(td))
         self._prev, self._prev_row = (None, None) if done else (step, row)
@@ -213,7 +213,7 @@ class RobotMemory:
 
     def _fit_schema(self, td: TensorDictBase) -> TensorDictBase:
         """Zero-fills keys an existing store (e.g. written by a collector) has and ``td`` lacks."""
-        schema = self.storage._schema
+        schema = self.storage.schema
         if schema is None:
             return td
         batch = tuple(td.batch_size)

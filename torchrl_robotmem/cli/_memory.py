@@ -119,7 +119,7 @@ def open_memory(path: Any):
 
 def root_attrs(storage) -> dict:
     """The store's group attributes (the commit record), as plain JSON values."""
-    return storage._group.attrs.asdict()
+    return storage.record()
 
 
 def write_order(storage) -> np.ndarray:
@@ -133,19 +133,19 @@ def write_order(storage) -> np.ndarray:
 
 
 def has_key(storage, key) -> bool:
-    return storage.initialized and key in storage._views.keys(True, True)
+    return storage.initialized and key in storage.view().keys(True, True)
 
 
 def column(storage, key, order: np.ndarray | None = None) -> np.ndarray:
     """Column ``key`` (tags included) as numpy, items in ``order`` (default: write order)."""
     order = write_order(storage) if order is None else order
-    col = storage._views.get(key)
+    col = storage.view().get(key)
     return col[:storage._len_along_dim0].numpy()[order] if len(order) else col[:0].numpy()
 
 
 def flat_column(storage, key, order: np.ndarray | None = None) -> np.ndarray:
     """Column ``key`` with every batch dimension (items, time, ...) flattened into one: ``[transitions, *row_shape]``."""
-    batch_dims = storage._views.get("episode").ndim if has_key(storage, "episode") else storage.ndim
+    batch_dims = storage.view().get("episode").ndim if has_key(storage, "episode") else storage.ndim
     col = column(storage, key, order)
     return col.reshape(-1, *col.shape[batch_dims:])
 

@@ -108,14 +108,14 @@ def _summarize(storage, *, cell: float, goal) -> dict[str, Any]:
         "per_run": [],
         "success": None,
         "goal_coverage": None,
-        "bytes_on_disk": store_size_bytes(storage._local_dir),
+        "bytes_on_disk": store_size_bytes(storage.local_dir),
         "schema": _schema(storage, schema),
     }
     if not len(storage) or not has_key(storage, "episode"):
         return out
     episode = flat_column(storage, "episode")
     # len counts the elements of the first ndim dims; items stored whole (ndim < batch dims) count once
-    n = len(storage) if storage.ndim == storage._views.get("episode").ndim else len(episode)
+    n = len(storage) if storage.ndim == storage.view().get("episode").ndim else len(episode)
     episode, run, env = episode[:n], flat_column(storage, "run")[:n], flat_column(storage, "env")[:n]
     done = flat_column(storage, DONE_KEY)[:n].reshape(n, -1).any(-1) if has_key(storage, DONE_KEY) else None
     success = flat_column(storage, SUCCESS_KEY)[:n].reshape(n, -1)[:, 0] > 0.5 if has_key(storage, SUCCESS_KEY) else None
@@ -170,7 +170,7 @@ def _coverage(goals: np.ndarray, cell: float, key) -> dict[str, Any]:
 
 def _schema(storage, schema: dict) -> list[dict[str, Any]]:
     """``[{key, dtype, shape, bytes}]``: ``shape`` per row, ``bytes`` on disk (local stores)."""
-    local = storage._local_dir
+    local = storage.local_dir
     out = []
     for path in sorted(schema):
         entry = {"key": path, "dtype": schema[path]["dtype"], "shape": list(schema[path]["shape"])}

@@ -61,7 +61,7 @@ def plot_memory(path: Any, out_dir: str, *, window: int = 50, max_points: int = 
     try:
         if not len(storage) or not has_key(storage, "episode"):
             raise CLIError(f"{storage.path!r} holds no tagged TensorDict rows; nothing to plot")
-        n = len(storage) if storage.ndim == storage._views.get("episode").ndim else None
+        n = len(storage) if storage.ndim == storage.view().get("episode").ndim else None
         episode, run, env = (flat_column(storage, k)[:n] for k in ("episode", "run", "env"))
         n = len(episode)
         success = flat_column(storage, SUCCESS_KEY)[:n].reshape(n, -1)[:, 0] > 0.5 \

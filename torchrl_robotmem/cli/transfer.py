@@ -390,14 +390,14 @@ def _minari_target(out: str) -> tuple[str, str]:
 
 
 def _obs_keys(storage, requested: list[str] | None) -> list[str]:
-    keys = storage._views.keys()  # top-level keys
+    keys = storage.view().keys()  # top-level keys
     if requested:
-        bad = [k for k in requested if k not in keys or ("next", k) not in storage._views.keys(True, True)]
+        bad = [k for k in requested if k not in keys or ("next", k) not in storage.view().keys(True, True)]
         if bad:
             raise CLIError(f"--obs-keys {bad}: not stored both at the root and under 'next'")
         return list(requested)
     return [k for k in sorted(keys) if k not in _NOT_OBS and k not in TAGS and k != "next"
-            and not hasattr(storage._views.get(k), "keys") and ("next", k) in storage._views.keys(True, True)]
+            and not hasattr(storage.view().get(k), "keys") and ("next", k) in storage.view().keys(True, True)]
 
 
 def export_minari(path: Any, out: str, *, obs_keys: list[str] | None = None) -> dict[str, Any]:
@@ -426,7 +426,7 @@ def export_minari(path: Any, out: str, *, obs_keys: list[str] | None = None) -> 
     root, dataset_id = _minari_target(out)
     storage = open_memory(path)
     try:
-        if not has_key(storage, "episode") or storage.ndim != 1 or storage._views.get("episode").ndim != 1:
+        if not has_key(storage, "episode") or storage.ndim != 1 or storage.view().get("episode").ndim != 1:
             raise CLIError("only memories of flat transitions (TensorDict rows, ndim=1) export to Minari")
         for key in ("action", DONE_KEY):
             if not has_key(storage, key):

@@ -552,7 +552,7 @@ class ZarrStorage(LazyTensorStorage):
 
     # -- episodes ----------------------------------------------------------------------------
 
-    def _close_episode_at(self, row: int) -> None:
+    def close_episode_at(self, row: int) -> None:
         """Ends the open episode at ``row`` (done/truncated), for writers that learn of a boundary late."""
         with self._engine.cv:
             self._tagger.close_stream()
@@ -631,6 +631,30 @@ class ZarrStorage(LazyTensorStorage):
             self._env_names.append(name)
             self._engine.mark_meta_dirty()
         return len(self._env_names) - 1
+
+    @property
+    def local_dir(self) -> str | None:
+        """The store's local directory, or ``None`` for in-memory and remote (URL) stores."""
+        return self._local_dir
+
+    @property
+    def schema(self) -> dict[str, dict] | None:
+        """The stored columns as ``{path: {"dtype": str, "shape": list}}`` (tags included), or
+        ``None`` before the first write. A copy: editing it changes nothing."""
+        return None if self._schema is None else {p: dict(s) for p, s in self._schema.items()}
+
+    def record(self) -> dict[str, Any]:
+        """The committed record (the store's group attributes) as plain JSON values."""
+        return self._group.attrs.asdict()
+
+    def view(self) -> TensorDictBase:
+        """Every row slot of the RAM mirror as a TensorDict of views, ``max_size`` rows
+        along the first dimension (tags included). Read it, do not write into it: writes
+        go through :meth:`set` / the replay buffer. Raises before the first write.
+        """
+        if not self.initialized:
+            raise RuntimeError(f"{self.path!r} holds no rows yet: there is no view to read.")
+        return self._views
 
     @property
     def chunk_rows(self) -> int | None:
