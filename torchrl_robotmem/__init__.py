@@ -12,8 +12,7 @@ Public surface:
 """
 from __future__ import annotations
 
-__version__ = "0.1.0"
-
+from ._version import __version__
 from .envs import make_env, make_reward_fn
 from .memory import RobotMemory
 from .recall import GoalIndex, recall

@@ -20,9 +20,8 @@ import torch
 import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec, ZstdCodec
 
-# The format this library writes. Bump on any change readers must know about.
-FORMAT_VERSION = 1
-FORMAT_MARKER = "torchrl_robotmem"
+from .errors import IntegrityError, Problem
+from .format import FORMAT_MARKER, FORMAT_VERSION  # noqa: F401 - re-exported: the format lives in .format
 
 _TORCH2NP = {
     torch.float16: np.float16,
@@ -87,7 +86,7 @@ def make_compressors(compressor: str | None, level: int, itemsize: int, *, check
     ``"zstd"`` is Zarr's own codec; ``"blosc"`` is zstd behind a byte shuffle.
     On FetchPush transitions plain zstd was both smaller and faster (see
     docs/benchmarks.md). ``checksum`` appends Zarr's ``crc32c`` codec, so a
-    changed chunk file fails to decode (see :mod:`.integrity`).
+    changed chunk file fails to decode (see :mod:`.format`).
     """
     tail = (Crc32cCodec(),) if checksum else ()
     if compressor in (None, "none"):
@@ -196,8 +195,6 @@ def open_group(store, *, read_only: bool) -> zarr.Group:
     except (FileNotFoundError, zarr.errors.GroupNotFoundError) as err:
         raise FileNotFoundError(f"No Zarr store found at {store}: {err}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as err:  # a damaged commit record, not a foreign store
-        from .integrity import IntegrityError, Problem
-
         problem = Problem("metadata", f"group metadata unreadable ({err})", key="zarr.json")
         raise IntegrityError(str(getattr(store, "root", store)), [problem], read_only=read_only) from None
     except (ValueError, zarr.errors.NodeTypeValidationError) as err:

@@ -40,7 +40,6 @@ Example:
 from __future__ import annotations
 
 import datetime
-import itertools
 import json
 import math
 import os
@@ -53,65 +52,46 @@ import zarr
 from zarr.core.buffer import default_buffer_prototype
 from zarr.core.sync import sync as zarr_sync
 
+from .. import _version
 from . import _backend
+from .errors import IntegrityError, NotAMemoryError, Problem
+
+# re-exported while ZarrStorage and the commit engine still call them here (they live in .format)
+from .format import (  # noqa: F401, I001
+    ARRAY_CONFIG,
+    BACKUP_DIR,
+    FORMAT_MARKER,
+    FORMAT_VERSION,
+    MARKER,
+    RESERVED,
+    chunk_keys,
+    decode_chunks,
+    dims,
+    is_strict,
+    numel,
+    read_error,
+    read_rows,
+    row_chunk_key,
+    write_zero_chunks,
+    writing_config,
+    writing_handles,
+)
 
 __all__ = ["IntegrityError", "IntegrityReport", "Problem", "RepairReport", "check_open", "repair", "verify"]
 
-#: what the format marker of a store created by this version records (``marker["integrity"]``)
-MARKER = {"checksum": "crc32c", "empty_chunks": "written"}
-#: the Zarr array config every writing handle uses: all-zero chunks are written too
-ARRAY_CONFIG = {"write_empty_chunks": True}
 _TAGS = ("episode", "run", "env")
 _KINDS = ("tensordict", "tensor", "pytree", "tensorclass")
-_BACKUP_DIR = "_repair_backup"
+_BACKUP_DIR = BACKUP_DIR
 #: top-level names of the store's own folders: no stored array path may start with one
-_RESERVED = ("_journal", _BACKUP_DIR)
+_RESERVED = RESERVED
 #: what a pending journal's ``meta`` may set (a commit's length, cursor and counters), never the structure
-_STRUCTURE = (_backend.FORMAT_MARKER, "max_size", "ndim", "inner_shape", "chunk_rows", "schema", "kind",
+_STRUCTURE = (FORMAT_MARKER, "max_size", "ndim", "inner_shape", "chunk_rows", "schema", "kind",
               "constants", "journal")
 #: missing chunks listed one by one per array; the rest are counted in one problem
 _LISTED = 8
-_HINT = "Run `robotmem verify {path}` for a full report and `robotmem repair {path}` to make it writable again."
 
 
 # -- reports ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Problem:
-    """One thing found wrong with a store.
-
-    Args:
-        kind (str): ``"missing_chunk"``, ``"checksum"``, ``"undecodable"`` (a chunk),
-            ``"metadata"`` (a ``zarr.json``), ``"attribute"`` (the commit record),
-            ``"format"`` (a newer format), ``"journal"`` (a pending journal that cannot be
-            replayed as it is) or ``"capacity"`` (sizes no machine here can hold).
-        what (str): what is wrong, in words.
-        array (str, optional): the array path (``"next/observation"``).
-        chunk (int, optional): the chunk index along the rows.
-        key (str, optional): the store key of the file at fault (``"observation/c/1/0"``).
-        rows (tuple, optional): the rows ``[lo, hi)`` (first dimension) the chunk holds.
-        severity (str): ``"error"`` (damage) or ``"warning"`` (cannot be told from damage).
-    """
-
-    kind: str
-    what: str
-    array: str | None = None
-    chunk: int | None = None
-    key: str | None = None
-    rows: tuple[int, int] | None = None
-    severity: str = "error"
-
-    def __str__(self) -> str:
-        where = []
-        if self.array is not None:
-            where.append(f"array {self.array!r}")
-        if self.chunk is not None:
-            where.append(f"chunk {self.chunk}")
-        loc = " ".join(where)
-        extra = ", ".join(x for x in (self.key, self.rows and f"rows {self.rows[0]}-{self.rows[1] - 1}") if x)
-        head = f"{loc} ({extra})" if loc and extra else loc or extra
-        return f"{head}: {self.what}" if head else self.what
 
 
 @dataclass
@@ -176,41 +156,7 @@ class RepairReport:
         return "\n".join(lines)
 
 
-class IntegrityError(ValueError):
-    """A store is damaged; ``problems`` lists what was found. Nothing was written to it."""
-
-    def __init__(self, path: Any, problems: list[Problem], *, read_only: bool = True, action: str | None = None,
-                 hint: str | None = None):
-        self.path = path
-        self.problems = list(problems)
-        errors = [p for p in self.problems if p.severity == "error"] or self.problems
-        lines = [f"The store at {path!r} is damaged ({len(errors)} problem{'s' if len(errors) != 1 else ''}):"]
-        lines += [f"  - {p}" for p in errors[:8]]
-        if len(errors) > 8:
-            lines.append(f"  - ... and {len(errors) - 8} more")
-        if action is None:
-            action = ("Nothing was changed." if read_only else
-                      "Refusing to open it for writing; nothing was changed.")
-        if hint is None:
-            hint = _HINT.format(path=path)
-            if read_only:
-                hint += " ZarrStorage(path, read_only=True, on_damage='warn') reads the intact rows."
-        lines.append(f"{action} {hint}")
-        super().__init__("\n".join(lines))
-
-
-class NotAMemoryError(ValueError):
-    """The path holds no torchrl_robotmem store."""
-
-
 # -- attributes ---------------------------------------------------------------------------
-
-
-def is_strict(attrs: dict) -> bool:
-    """Whether every chunk below the committed length must exist (stores created by this version)."""
-    marker = attrs.get(_backend.FORMAT_MARKER)
-    integ = marker.get("integrity") if isinstance(marker, dict) else None
-    return isinstance(integ, dict) and integ.get("empty_chunks") == "written"
 
 
 def _is_int(v: Any) -> bool:
@@ -257,13 +203,13 @@ def check_attributes(attrs: dict) -> list[Problem]:
     def bad(key, what):
         out.append(Problem("attribute", f"attribute {key!r} {what}", key="zarr.json"))
 
-    marker = attrs.get(_backend.FORMAT_MARKER)
+    marker = attrs.get(FORMAT_MARKER)
     if not isinstance(marker, dict) or not _is_int(marker.get("format_version")):
-        bad(_backend.FORMAT_MARKER, f"is malformed ({marker!r})")
-    elif marker["format_version"] > _backend.FORMAT_VERSION:
+        bad(FORMAT_MARKER, f"is malformed ({marker!r})")
+    elif marker["format_version"] > FORMAT_VERSION:
         out.append(Problem("format", f"written in format version {marker['format_version']} by torchrl_robotmem "
                            f"{marker.get('library_version')}; this version reads format <= "
-                           f"{_backend.FORMAT_VERSION}: upgrade torchrl_robotmem", key="zarr.json"))
+                           f"{FORMAT_VERSION}: upgrade torchrl_robotmem", key="zarr.json"))
     max_size = attrs.get("max_size")
     if not _is_int(max_size) or max_size < 1:
         bad("max_size", f"must be a positive integer, got {max_size!r}")
@@ -353,29 +299,13 @@ def _journal_record_problems(attrs: dict, journal: dict) -> list[Problem]:
     if out or not attrs.get("schema"):
         return out
     chunks = journal["chunks"]
-    nchunks = -(-_dims(attrs)[0] // int(attrs["chunk_rows"]))
+    nchunks = -(-dims(attrs)[0] // int(attrs["chunk_rows"]))
     if len(set(chunks)) != len(chunks) or any(c >= nchunks for c in chunks):
         out.append(bad(f"names chunks {sorted(chunks)[:8]} (the arrays have chunks 0..{nchunks - 1}, each once)"))
     return out
 
 
-def _dims(attrs: dict) -> tuple[int, int, tuple[int, ...]]:
-    """``(max_dim0, committed rows along dim 0, inner_shape)`` of sane attributes."""
-    inner = tuple(attrs.get("inner_shape") or ())
-    ndim = int(attrs.get("ndim", 1))
-    numel = math.prod(inner[: ndim - 1]) if ndim > 1 else 1
-    numel = max(numel, 1)
-    return -(-int(attrs["max_size"]) // numel), -(-int(attrs.get("len", 0)) // numel), inner
-
-
 # -- arrays and chunks --------------------------------------------------------------------
-
-
-def _chunk_keys(arr: Any, path: str, c: int) -> list[str]:
-    """The store keys of chunk ``c`` (along the rows) of ``arr``: one per chunk of the other dims."""
-    shape, chunks = arr.shape, arr.metadata.chunk_grid.chunk_shape
-    other = [range(-(-s // k)) for s, k in zip(shape[1:], chunks[1:])]
-    return [f"{path}/{arr.metadata.encode_chunk_key((c, *rest))}" for rest in itertools.product(*other)]
 
 
 def _list_keys(store: Any, local_dir: Any, prefix: str) -> set[str]:
@@ -407,7 +337,7 @@ def check_arrays(get_array, attrs: dict, *, store: Any, local_dir: Any, list_chu
     schema = attrs.get("schema")
     if not schema:
         return problems, arrays
-    _, n0, _ = _dims(attrs)
+    _, n0, _ = dims(attrs)
     for path, spec in schema.items():
         if path in skip:
             continue
@@ -432,7 +362,7 @@ def check_arrays(get_array, attrs: dict, *, store: Any, local_dir: Any, list_chu
 
 def _disagreement(arr: Any, path: str, spec: dict, attrs: dict) -> Problem | None:
     """Where an array's own ``zarr.json`` and the commit record's schema disagree, a problem naming both."""
-    max_dim0, _, inner = _dims(attrs)
+    max_dim0, _, inner = dims(attrs)
     chunk_rows = int(attrs["chunk_rows"])
     want_dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
     want_tail = (*inner, *spec["shape"])
@@ -452,22 +382,11 @@ def _disagreement(arr: Any, path: str, spec: dict, attrs: dict) -> Problem | Non
         array=path, key=f"{path}/zarr.json")
 
 
-def _row_chunk_key(arr: Any, path: str) -> tuple[str, str]:
-    """``(head, tail)``: chunk ``c`` along the rows of ``arr`` is stored at key ``head + str(c) + tail``.
-
-    Arrays of this library have one chunk across every other dimension (checked
-    by :func:`check_arrays`), so each row chunk is one file.
-    """
-    probe = 987654321
-    head, _, tail = f"{path}/{arr.metadata.encode_chunk_key((probe, *([0] * (arr.ndim - 1))))}".partition(str(probe))
-    return head, tail
-
-
 def present_chunks(arrays: dict, *, store: Any, local_dir: Any) -> dict[str, set[int]]:
     """``{path: indices of the row chunks that have a file}``, one listing per array."""
     out = {}
     for path, arr in arrays.items():
-        head, tail = _row_chunk_key(arr, path)
+        head, tail = row_chunk_key(arr, path)
         found = set()
         for key in _list_keys(store, local_dir, path):
             if key.startswith(head) and key.endswith(tail):
@@ -494,7 +413,7 @@ def _missing_chunks(arrays: dict, attrs: dict, *, store: Any, local_dir: Any, pr
     Costs in proportion to the chunk files that exist, not to what ``len``
     claims: the first missing chunks of each array are listed, the rest counted.
     """
-    _, n0, _ = _dims(attrs)
+    _, n0, _ = dims(attrs)
     chunk_rows = int(attrs["chunk_rows"])
     nchunks = -(-n0 // chunk_rows)
     counted = {p: arr for p, arr in arrays.items() if 0 not in arr.shape[1:]}  # arrays of empty rows have no chunks
@@ -507,7 +426,7 @@ def _missing_chunks(arrays: dict, attrs: dict, *, store: Any, local_dir: Any, pr
 
     def listed(path, arr, found, what):
         cs = _first_missing(found, nchunks, _LISTED + 1)
-        out = [Problem("missing_chunk", what, array=path, chunk=c, key=_chunk_keys(arr, path, c)[0], rows=rows(c))
+        out = [Problem("missing_chunk", what, array=path, chunk=c, key=chunk_keys(arr, path, c)[0], rows=rows(c))
                for c in cs[:_LISTED]]
         if len(cs) > _LISTED:
             out.append(Problem("missing_chunk", f"{nchunks - len(found) - _LISTED} more chunk files missing: the "
@@ -560,49 +479,10 @@ def missing_after_read(group: Any, attrs: dict, *, store: Any, local_dir: Any) -
         The missing chunks as :class:`Problem` s (errors; warnings for stores of
         the format that did not write all-zero chunks).
     """
-    if not attrs.get("schema") or not _dims(attrs)[1]:
+    if not attrs.get("schema") or not dims(attrs)[1]:
         return []
     arrays = {p: group[p] for p in attrs["schema"]}
     return [p for p in _missing_chunks(arrays, attrs, store=store, local_dir=local_dir) if p.severity == "error"]
-
-
-def _read_error(err: BaseException) -> tuple[str, str]:
-    msg = str(err)
-    if "checksum" in msg.lower():
-        return "checksum", f"checksum mismatch (crc32c): the chunk file was changed ({msg[:90]})"
-    return "undecodable", f"chunk does not decode ({type(err).__name__}: {msg[:90]}): truncated or overwritten"
-
-
-def decode_chunks(arr: Any, path: str, n0: int, chunk_rows: int,
-                  present: set[int] | None = None) -> tuple[list[Problem], int]:
-    """Reads every chunk of ``arr`` below row ``n0`` one by one; ``(problems, chunks read)``.
-
-    With ``present`` (the chunk indices that have a file), only those are read:
-    a missing one is reported by the listing, and a ``len`` claiming more rows
-    than exist costs nothing.
-    """
-    problems = []
-    nchunks = -(-n0 // chunk_rows)
-    todo = range(nchunks) if present is None else sorted(c for c in present if c < nchunks)
-    for c in todo:
-        lo, hi = c * chunk_rows, min((c + 1) * chunk_rows, arr.shape[0])
-        try:
-            arr[lo:hi]
-        except Exception as err:  # noqa: BLE001 - codec errors have no common type
-            kind, what = _read_error(err)
-            problems.append(Problem(kind, what, array=path, chunk=c, key=_chunk_keys(arr, path, c)[0],
-                                    rows=(lo, min(hi, n0))))
-    return problems, len(todo)
-
-
-def read_error(arr: Any, path: str, n0: int, chunk_rows: int, err: BaseException, store_path: Any,
-               read_only: bool) -> IntegrityError:
-    """The :class:`IntegrityError` for a failed read of ``arr[:n0]``, naming the chunks at fault."""
-    problems, _ = decode_chunks(arr, path, n0, chunk_rows)
-    if not problems:
-        kind, what = _read_error(err)
-        problems = [Problem(kind, what, array=path)]
-    return IntegrityError(store_path, problems, read_only=read_only)
 
 
 def check_journal(get_array, attrs: dict, arrays: dict, present: dict | None) -> list[Problem]:
@@ -620,8 +500,8 @@ def check_journal(get_array, attrs: dict, arrays: dict, present: dict | None) ->
         return []
     out = []
     rows = int(attrs["chunk_rows"])
-    max_dim0, n0, inner = _dims(attrs)
-    meta_n0 = _dims({**attrs, **journal["meta"]})[1]
+    max_dim0, n0, inner = dims(attrs)
+    meta_n0 = dims({**attrs, **journal["meta"]})[1]
     chunks = set(journal["chunks"])
     if meta_n0 > n0 and present:
         sets = list(present.values())
@@ -700,7 +580,7 @@ def capacity_problem(attrs: dict, *, mirror: bool = True) -> Problem | None:
         return None
     from .schema import PackedLayout
 
-    max_dim0, _, inner = _dims(attrs)
+    max_dim0, _, inner = dims(attrs)
     chunk_rows = int(attrs["chunk_rows"])
     per_row = max(math.prod(inner), 1) * PackedLayout(attrs["schema"]).row_bytes
     rows = max(max_dim0, chunk_rows) if mirror else chunk_rows
@@ -764,7 +644,7 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
         if journal and not any(p.kind == "metadata" for p in more):
             problems += check_journal(get_array, attrs, arrays, present if list_chunks else None)
         if (decode or on_damage == "warn") and not any(p.kind in ("metadata", "journal") for p in problems):
-            _, n0, _ = _dims(attrs)
+            _, n0, _ = dims(attrs)
             for p, arr in arrays.items():
                 problems += decode_chunks(arr, p, n0, int(attrs["chunk_rows"]), present.get(p))[0]
             if journal and decode:
@@ -784,7 +664,7 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
     if not (read_only and on_damage == "warn" and data_only):
         raise IntegrityError(path, errors, read_only=read_only)
     cut = min(p.rows[0] for p in errors)
-    _, n0, inner = _dims(attrs)
+    _, n0, inner = dims(attrs)
     ndim = int(attrs.get("ndim", 1))
     numel = max(math.prod(inner[: ndim - 1]) if ndim > 1 else 1, 1)
     warnings.warn(
@@ -792,7 +672,7 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
         f"{cut} rows before the first damaged chunk (of {n0} committed).",
         stacklevel=4,
     )
-    return {**attrs, "len": min(int(attrs.get("len", 0)), cut * numel), "cursor": cut % _dims(attrs)[0],
+    return {**attrs, "len": min(int(attrs.get("len", 0)), cut * numel), "cursor": cut % dims(attrs)[0],
             "last_cursor": cut - 1, "journal": None}
 
 
@@ -927,8 +807,8 @@ def verify(path: Any, *, storage_options: dict | None = None) -> IntegrityReport
             raise NotAMemoryError(f"{name!r} is not a torchrl_robotmem memory ({problem.what}).")
         report.problems.append(problem)
         return report
-    if _backend.FORMAT_MARKER not in attrs:
-        raise NotAMemoryError(f"{name!r} is a Zarr group without the {_backend.FORMAT_MARKER!r} attribute.")
+    if FORMAT_MARKER not in attrs:
+        raise NotAMemoryError(f"{name!r} is a Zarr group without the {FORMAT_MARKER!r} attribute.")
     report.problems += check_attributes(attrs)
     if report.problems:
         return report
@@ -948,7 +828,7 @@ def verify(path: Any, *, storage_options: dict | None = None) -> IntegrityReport
     report.checksums = bool(arrays) and all(
         any(type(c).__name__ == "Crc32cCodec" for c in arr.metadata.codecs) for arr in arrays.values())
     if attrs.get("schema"):
-        _, n0, _ = _dims(attrs)
+        _, n0, _ = dims(attrs)
         for p, arr in arrays.items():
             found, n = decode_chunks(arr, p, n0, int(attrs["chunk_rows"]), present.get(p))
             report.problems += found
@@ -1092,7 +972,7 @@ def _refusals(before: IntegrityReport, store: Any, local_dir: Any) -> dict[str, 
             raise _refuse(name, [Problem("attribute", f"schema key {k!r} is not a path inside the store ({why})",
                                          key="zarr.json") for k, why in unsafe], "it names paths outside it")
     if {p.what.split("'")[1] for p in check_attributes(attrs) if p.kind == "attribute"} & {
-            "schema", "chunk_rows", "max_size", "inner_shape", "ndim", _backend.FORMAT_MARKER}:
+            "schema", "chunk_rows", "max_size", "inner_shape", "ndim", FORMAT_MARKER}:
         return {}  # the structure is recomputed from the arrays' own metadata: nothing to disagree with
     capacity = capacity_problem(attrs)
     if capacity is not None:
@@ -1113,7 +993,7 @@ def _refusals(before: IntegrityReport, store: Any, local_dir: Any) -> dict[str, 
         except Exception:  # noqa: BLE001 - no journal array to compare with
             jarr = None
         if jarr is not None and (np.dtype(jarr.dtype) != _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
-                                 or tuple(jarr.shape[1 + len(_dims(attrs)[2]):]) != tuple(spec["shape"])):
+                                 or tuple(jarr.shape[1 + len(dims(attrs)[2]):]) != tuple(spec["shape"])):
             found.append(Problem("metadata", f"array metadata missing, and the journal's copy (_journal/{p}/zarr.json) "
                                  f"records {np.dtype(jarr.dtype)} {list(jarr.shape)} where the schema records "
                                  f"{spec['dtype']} {spec['shape']}", array=p, key=f"{p}/zarr.json"))
@@ -1181,7 +1061,7 @@ def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> 
         actions.append(f"recomputed {sorted(bad_attrs)} from the arrays' metadata")
         bad_attrs -= {"schema", "chunk_rows", "max_size", "inner_shape", "ndim", "kind"}
     # -- array metadata
-    max_dim0, _, inner = _dims(new)
+    max_dim0, _, inner = dims(new)
     for path_ in new.get("schema") or {}:
         try:
             arr = zarr.open_array(store, path=path_, mode="r", zarr_format=3)
@@ -1204,9 +1084,9 @@ def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> 
     if "len" in bad_attrs or group_rebuilt:
         n_dim0 = _written_extent(store, new, limit=max_dim0)
     else:
-        _, n_dim0, _ = _dims(new)
+        _, n_dim0, _ = dims(new)
     if not dry_run:
-        data = _data_problems(store, local_dir, {**new, "len": n_dim0 * _numel(new)})
+        data = _data_problems(store, local_dir, {**new, "len": n_dim0 * numel(new)})
     else:
         data = [p for p in before.problems if p.kind in ("missing_chunk", "checksum", "undecodable") and p.severity == "error"]
     if journal and journal_bad and isinstance(journal, dict) and journal.get("chunks"):
@@ -1217,7 +1097,7 @@ def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> 
     if data:
         cut = min(p.rows[0] for p in data)
         trimmed = _written_extent(store, new, limit=cut)
-        actions.append(f"truncated the committed length from {n_dim0 * _numel(new)} to {trimmed * _numel(new)} rows: "
+        actions.append(f"truncated the committed length from {n_dim0 * numel(new)} to {trimmed * numel(new)} rows: "
                        + "; ".join(str(p) for p in data[:4]) + (" ..." if len(data) > 4 else ""))
         n_dim0 = trimmed
         for p in data:
@@ -1228,8 +1108,8 @@ def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> 
                 _delete(store, p.key, local_dir)
                 actions.append(f"moved the damaged chunk {p.key} to {backup}/{p.key}")
     elif "len" in bad_attrs:
-        actions.append(f"set the committed length to {n_dim0 * _numel(new)} rows (the written rows)")
-    length = n_dim0 * _numel(new)
+        actions.append(f"set the committed length to {n_dim0 * numel(new)} rows (the written rows)")
+    length = n_dim0 * numel(new)
     full = n_dim0 >= max_dim0
     old_count = attrs.get("write_count") if _is_int(attrs.get("write_count")) and "write_count" not in bad_attrs else None
     changes: dict[str, Any] = {}
@@ -1271,19 +1151,13 @@ def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> 
     return RepairReport(before, after, actions, backup)
 
 
-def _numel(attrs: dict) -> int:
-    inner = tuple(attrs.get("inner_shape") or ())
-    ndim = int(attrs.get("ndim", 1))
-    return max(math.prod(inner[: ndim - 1]) if ndim > 1 else 1, 1)
-
-
 def _data_problems(store, local_dir, attrs) -> list[Problem]:
     def get_array(p):
         return zarr.open_array(store, path=p, mode="r", zarr_format=3)
 
     present: dict = {}
     problems, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir, present=present)
-    _, n0, _ = _dims(attrs)
+    _, n0, _ = dims(attrs)
     for p, arr in arrays.items():
         problems += decode_chunks(arr, p, n0, int(attrs["chunk_rows"]), present.get(p))[0]
     return [p for p in problems if p.severity == "error" and p.kind in ("missing_chunk", "checksum", "undecodable")]
@@ -1370,13 +1244,11 @@ def _rebuild_attrs(store, local_dir) -> dict:
     kind = {"kind": "tensordict"} if "episode" in arrays else ({"kind": "tensor"} if "_tensor" in arrays else None)
     schema = {p: {"dtype": str(np.dtype(a.dtype)), "shape": list(a.shape[1 + len(inner):])} for p, a in arrays.items()}
     strict = all(any(type(c).__name__ == "Crc32cCodec" for c in a.metadata.codecs) for a in arrays.values())
-    from .zarr_storage import _library_version
-
-    marker = {"format_version": _backend.FORMAT_VERSION, "library_version": _library_version(),
+    marker = {"format_version": FORMAT_VERSION, "library_version": _version.__version__,
               "rebuilt_by": "robotmem repair"}
     if strict:
         marker["integrity"] = dict(MARKER)
-    return {_backend.FORMAT_MARKER: marker, "max_size": int(min(a.shape[0] for a in arrays.values())),
+    return {FORMAT_MARKER: marker, "max_size": int(min(a.shape[0] for a in arrays.values())),
             "ndim": 1, "inner_shape": inner, "chunk_rows": int(ref.metadata.chunk_grid.chunk_shape[0]),
             "schema": schema, "kind": kind, "len": 0, "cursor": 0, "last_cursor": -1, "write_count": 0,
             "episode_next": 0, "runs": 0, "env_names": [], "env": None, "journal": None}
@@ -1399,7 +1271,7 @@ def _rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | Non
     from zarr.storage import MemoryStore
 
     spec = attrs["schema"][path]
-    max_dim0, _, inner = _dims(attrs)
+    max_dim0, _, inner = dims(attrs)
     dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
     shape = (max_dim0, *inner, *spec["shape"])
     chunks = (int(attrs["chunk_rows"]), *shape[1:])
@@ -1425,34 +1297,3 @@ def _rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | Non
                 except Exception:  # noqa: BLE001 - not this pipeline
                     continue
     return None
-
-
-# -- hooks for ZarrStorage ------------------------------------------------------------------
-
-
-def read_rows(arr: Any, path: str, n0: int, chunk_rows: int, store_path: Any, read_only: bool) -> np.ndarray:
-    """``arr[:n0]`` as a contiguous array, or an :class:`IntegrityError` naming the chunks that fail to decode."""
-    try:
-        return np.ascontiguousarray(arr[:n0])
-    except Exception as err:  # noqa: BLE001 - codec errors have no common type
-        raise read_error(arr, path, n0, chunk_rows, err, store_path, read_only) from err
-
-
-def writing_handles(group: Any, paths: Any) -> dict:
-    """Handles on the arrays ``paths`` that write all-zero chunks too (for the commit engine)."""
-    return {p: group[p].with_config(ARRAY_CONFIG) for p in paths}
-
-
-def writing_config():
-    """A context in which every Zarr handle writes all-zero chunks (a journal replay opens its own)."""
-    return zarr.config.set({"array.write_empty_chunks": True})
-
-
-def write_zero_chunks(arr: Any, n0: int, chunk_rows: int) -> None:
-    """Writes the chunks of a new array below row ``n0`` as zeros (a key added to a store with rows).
-
-    Its older rows read zeros; written as chunk files, a later missing one is damage.
-    """
-    for lo in range(0, n0, chunk_rows):
-        hi = min(lo + chunk_rows, arr.shape[0])
-        arr[lo:hi] = np.zeros((hi - lo, *arr.shape[1:]), dtype=arr.dtype)

@@ -1,0 +1,89 @@
+"""The error types of a store, on the ground floor: nothing in ``storage/`` is imported here.
+
+* :class:`Problem`: one thing found wrong with a store (an array, a chunk, an attribute);
+* :class:`IntegrityError`: a store is damaged, with the problems that say where;
+* :class:`NotAMemoryError`: the path holds no torchrl_robotmem store.
+
+Example:
+    >>> from torchrl_robotmem.storage.errors import IntegrityError, Problem
+    >>> err = IntegrityError("memory.zarr", [Problem("missing_chunk", "chunk file missing", array="obs", chunk=3)])
+    >>> print(str(err).splitlines()[1])
+      - array 'obs' chunk 3: chunk file missing
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["IntegrityError", "NotAMemoryError", "Problem"]
+
+#: what every damage message ends with: the commands that say more and mend the store
+HINT = "Run `robotmem verify {path}` for a full report and `robotmem repair {path}` to make it writable again."
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing found wrong with a store.
+
+    Args:
+        kind (str): ``"missing_chunk"``, ``"checksum"``, ``"undecodable"`` (a chunk),
+            ``"metadata"`` (a ``zarr.json``), ``"attribute"`` (the commit record),
+            ``"format"`` (a newer format), ``"journal"`` (a pending journal that cannot be
+            replayed as it is) or ``"capacity"`` (sizes no machine here can hold).
+        what (str): what is wrong, in words.
+        array (str, optional): the array path (``"next/observation"``).
+        chunk (int, optional): the chunk index along the rows.
+        key (str, optional): the store key of the file at fault (``"observation/c/1/0"``).
+        rows (tuple, optional): the rows ``[lo, hi)`` (first dimension) the chunk holds.
+        severity (str): ``"error"`` (damage) or ``"warning"`` (cannot be told from damage).
+
+    Example:
+        >>> print(Problem("checksum", "checksum mismatch", array="obs", chunk=1, key="obs/c/1/0", rows=(100, 200)))
+        array 'obs' chunk 1 (obs/c/1/0, rows 100-199): checksum mismatch
+    """
+
+    kind: str
+    what: str
+    array: str | None = None
+    chunk: int | None = None
+    key: str | None = None
+    rows: tuple[int, int] | None = None
+    severity: str = "error"
+
+    def __str__(self) -> str:
+        where = []
+        if self.array is not None:
+            where.append(f"array {self.array!r}")
+        if self.chunk is not None:
+            where.append(f"chunk {self.chunk}")
+        loc = " ".join(where)
+        extra = ", ".join(x for x in (self.key, self.rows and f"rows {self.rows[0]}-{self.rows[1] - 1}") if x)
+        head = f"{loc} ({extra})" if loc and extra else loc or extra
+        return f"{head}: {self.what}" if head else self.what
+
+
+class IntegrityError(ValueError):
+    """A store is damaged; ``problems`` lists what was found. Nothing was written to it."""
+
+    def __init__(self, path: Any, problems: list[Problem], *, read_only: bool = True, action: str | None = None,
+                 hint: str | None = None):
+        self.path = path
+        self.problems = list(problems)
+        errors = [p for p in self.problems if p.severity == "error"] or self.problems
+        lines = [f"The store at {path!r} is damaged ({len(errors)} problem{'s' if len(errors) != 1 else ''}):"]
+        lines += [f"  - {p}" for p in errors[:8]]
+        if len(errors) > 8:
+            lines.append(f"  - ... and {len(errors) - 8} more")
+        if action is None:
+            action = ("Nothing was changed." if read_only else
+                      "Refusing to open it for writing; nothing was changed.")
+        if hint is None:
+            hint = HINT.format(path=path)
+            if read_only:
+                hint += " ZarrStorage(path, read_only=True, on_damage='warn') reads the intact rows."
+        lines.append(f"{action} {hint}")
+        super().__init__("\n".join(lines))
+
+
+class NotAMemoryError(ValueError):
+    """The path holds no torchrl_robotmem store."""
