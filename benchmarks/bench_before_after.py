@@ -68,11 +68,11 @@ def commands(rows: int, out: Path) -> dict[str, list[str]]:
     }
 
 
-def checkout(rev: str, scratch: Path) -> Path:
+def checkout(rev: str, scratch: Path, side: str) -> Path:
     """The tree of ``rev``: the working tree for ``"."``, else a detached worktree under ``scratch``."""
     if rev == ".":
         return ROOT
-    tree = scratch / f"tree-{rev.replace('/', '_')}"
+    tree = scratch / f"{side}-tree"
     subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "--force", str(tree), rev],
                    check=True, capture_output=True)
     return tree
@@ -107,7 +107,7 @@ def main(argv=None) -> None:
     results = {side: {b: [] for b in only} for side in ("before", "after")}
     with tempfile.TemporaryDirectory(prefix="before_after-") as tmp:
         scratch = Path(tmp)
-        trees = {"before": checkout(args.before, scratch), "after": checkout(args.after, scratch)}
+        trees = {side: checkout(getattr(args, side), scratch, side) for side in ("before", "after")}
         try:
             steps = [(r, b, side) for r in range(args.rounds) for b in only
                      for side in (("before", "after") if r % 2 == 0 else ("after", "before"))]
