@@ -20,8 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
 from .recall import GoalIndex, RowFilter
-from .storage import TAG_KEYS, ZarrStorage
-from .storage import _backend as _zarr
+from .storage import TAG_KEYS, ZarrStorage, key_to_path, path_to_key, store_exists, torch_dtype
 
 __all__ = ["RobotMemory"]
 
@@ -96,7 +95,7 @@ class RobotMemory:
                 "robotmem's spelling RobotMemory(db='gym_robotics.db'), not both."
             )
         path = db if path is None else path
-        if max_size is None and not read_only and not _zarr.store_exists(path):
+        if max_size is None and not read_only and not store_exists(path):
             max_size = 1_000_000
         self.storage = ZarrStorage(path, max_size, env=env, read_only=read_only, **storage_kwargs)
         self.buffer = TensorDictReplayBuffer(storage=self.storage, batch_size=256)
@@ -217,14 +216,14 @@ class RobotMemory:
         if schema is None:
             return td
         batch = tuple(td.batch_size)
-        have = {_zarr.key_to_path(k) for k in td.keys(True, True)}
+        have = {key_to_path(k) for k in td.keys(True, True)}
         for path, spec in schema.items():
-            key = _zarr.path_to_key(path)
+            key = path_to_key(path)
             if path in have or key in TAG_KEYS:
                 continue
-            td.set(key, torch.zeros((*batch, *spec["shape"]), dtype=_zarr.torch_dtype(spec["dtype"])))
+            td.set(key, torch.zeros((*batch, *spec["shape"]), dtype=torch_dtype(spec["dtype"])))
         for path in have - set(schema):
-            td = td.exclude(_zarr.path_to_key(path))
+            td = td.exclude(path_to_key(path))
         return td
 
     # -- reading --------------------------------------------------------------

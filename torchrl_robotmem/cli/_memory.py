@@ -22,6 +22,7 @@ import numpy as np
 from . import CLIError
 
 DONE_KEY = ("next", "done")
+TAGS = ("episode", "run", "env")  # the tag columns, in the order the commands read them
 SUCCESS_KEY = ("next", "is_success")
 GOAL_KEYS = (("next", "achieved_goal"), "achieved_goal")
 
@@ -66,7 +67,7 @@ def partial_builds(path: str) -> list[tuple[str, int]]:
 
 def incomplete_build_error(path: Any, code: int = 2) -> CLIError | None:
     """A :class:`CLIError` when ``path`` is an interrupted build, or a missing target with one beside it."""
-    from torchrl_robotmem.storage._backend import is_url, normalize_path
+    from torchrl_robotmem.storage import is_url, normalize_path
 
     name = normalize_path(path)
     if not isinstance(name, str) or is_url(name):
@@ -89,8 +90,7 @@ def incomplete_build_error(path: Any, code: int = 2) -> CLIError | None:
 
 def open_memory(path: Any):
     """A read-only :class:`~torchrl_robotmem.ZarrStorage` on ``path``, or a :class:`CLIError` saying why not."""
-    from torchrl_robotmem.storage import ZarrStorage
-    from torchrl_robotmem.storage._backend import FORMAT_MARKER, is_url, normalize_path
+    from torchrl_robotmem.storage import FORMAT_MARKER, ZarrStorage, is_url, normalize_path
 
     incomplete = incomplete_build_error(path)
     if incomplete is not None:
@@ -122,11 +122,21 @@ def root_attrs(storage) -> dict:
     return storage.record()
 
 
+def is_full(storage) -> bool:
+    """Whether every slot of the ring holds an item (the next write overwrites the oldest)."""
+    return storage.initialized and len(storage) == storage.max_size
+
+
+def stored_along_dim0(storage) -> int:
+    """How many positions along the first dimension hold items (TorchRL's ``storage.shape[0]``)."""
+    return int(storage.shape[0]) if storage.initialized else 0
+
+
 def write_order(storage) -> np.ndarray:
     """Positions along the first dimension of the stored items, oldest first (a full ring starts at the cursor)."""
-    n0 = storage._len_along_dim0 if storage.initialized else 0
+    n0 = stored_along_dim0(storage)
     order = np.arange(n0)
-    if storage.initialized and storage._is_full:
+    if is_full(storage):
         cursor = int(root_attrs(storage).get("cursor", 0)) % max(n0, 1)
         order = np.roll(order, -cursor)
     return order
@@ -140,7 +150,7 @@ def column(storage, key, order: np.ndarray | None = None) -> np.ndarray:
     """Column ``key`` (tags included) as numpy, items in ``order`` (default: write order)."""
     order = write_order(storage) if order is None else order
     col = storage.view().get(key)
-    return col[:storage._len_along_dim0].numpy()[order] if len(order) else col[:0].numpy()
+    return col[:stored_along_dim0(storage)].numpy()[order] if len(order) else col[:0].numpy()
 
 
 def flat_column(storage, key, order: np.ndarray | None = None) -> np.ndarray:

@@ -19,6 +19,7 @@ from ._memory import (
     flat_column,
     goal_key,
     has_key,
+    is_full,
     open_memory,
     root_attrs,
 )
@@ -84,7 +85,7 @@ def summarize(path: Any, *, cell: float = 0.05, goal: str | None = None) -> dict
 
 
 def _summarize(storage, *, cell: float, goal) -> dict[str, Any]:
-    from torchrl_robotmem.storage._backend import FORMAT_MARKER, store_size_bytes
+    from torchrl_robotmem.storage import FORMAT_MARKER, store_size_bytes
 
     attrs = root_attrs(storage)
     schema = attrs.get("schema") or {}
@@ -96,7 +97,7 @@ def _summarize(storage, *, cell: float, goal) -> dict[str, Any]:
         "ndim": int(attrs.get("ndim", 1)),
         "rows": len(storage),
         "max_size": int(storage.max_size),
-        "full": bool(storage.initialized and storage._is_full),
+        "full": bool(is_full(storage)),
         "write_count": int(attrs.get("write_count", 0)),
         "chunk_rows": attrs.get("chunk_rows"),
         "journal_pending": bool(attrs.get("journal")),

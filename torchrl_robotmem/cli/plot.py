@@ -57,6 +57,25 @@ def plot_memory(path: Any, out_dir: str, *, window: int = 50, max_points: int = 
 
     if window < 1 or max_points < 1:
         raise ValueError(f"window and max_points must be >= 1, got {window} and {max_points}.")
+    c = _read_columns(path)
+    os.makedirs(out_dir, exist_ok=True)
+    names = c["names"]
+    codes = [int(code) for code in np.unique(c["env"])]
+    label = {code: names[code] if 0 <= code < len(names) else "(unknown env)" for code in codes}
+    written = []
+    if c["success"] is not None and c["done"] is not None and c["done"].any():
+        fig = _success_figure(plt, c, codes, label, window)
+        written.append(_save(fig, os.path.join(out_dir, "success.png")))
+        plt.close(fig)
+    if c["goals"] is not None:
+        fig = _goals_figure(plt, c, codes, label, max_points)
+        written.append(_save(fig, os.path.join(out_dir, "goals.png")))
+        plt.close(fig)
+    return written
+
+
+def _read_columns(path: Any) -> dict[str, Any]:
+    """The flat columns the figures draw (episode, run, env, success, done, goals) and the title, read-only."""
     storage = open_memory(path)
     try:
         if not len(storage) or not has_key(storage, "episode"):
@@ -69,63 +88,62 @@ def plot_memory(path: Any, out_dir: str, *, window: int = 50, max_points: int = 
         done = flat_column(storage, DONE_KEY)[:n].reshape(n, -1).any(-1) if has_key(storage, DONE_KEY) else None
         gkey = goal_key(storage)
         goals = flat_column(storage, gkey)[:n].reshape(n, -1) if gkey is not None else None
-        names = list(storage.env_names)
-        title = os.path.basename(str(storage.path).rstrip("/"))
+        return {"episode": episode, "run": run, "env": env, "success": success, "done": done, "gkey": gkey,
+                "goals": goals, "names": list(storage.env_names),
+                "title": os.path.basename(str(storage.path).rstrip("/"))}
     finally:
         storage.close()
 
-    os.makedirs(out_dir, exist_ok=True)
-    codes = [int(c) for c in np.unique(env)]
-    label = {c: names[c] if 0 <= c < len(names) else "(unknown env)" for c in codes}
-    written = []
 
-    if success is not None and done is not None and done.any():
-        fig, axes = plt.subplots(len(codes), 1, figsize=(8, 2.8 * len(codes)), squeeze=False)
-        for ax, c in zip(axes[:, 0], codes):
-            ends = np.flatnonzero(done & (env == c))
-            s = success[ends].astype(float)
-            r = run[ends]
-            x = np.arange(len(s))
-            if len(s):
-                k = min(window, len(s))
-                rolling = np.convolve(s, np.ones(k) / k, mode="valid")
-                ax.plot(x[k - 1:], rolling, color="tab:blue", label=f"rolling mean ({k} episodes)")
-                for rid in np.unique(r):
-                    idx = np.flatnonzero(r == rid)
-                    ax.hlines(s[idx].mean(), idx[0], idx[-1], color="tab:orange", lw=2)
-                    ax.axvline(idx[0], color="grey", lw=0.5, ls=":")
-                    ax.text(idx[0], 1.02, f"run {rid}", fontsize=7, va="bottom")
-                ax.plot([], [], color="tab:orange", lw=2, label="mean per run")
-                ax.legend(loc="lower right", fontsize=7)
-            ax.set_ylim(-0.02, 1.1)
-            ax.set_ylabel("episode success")
-            ax.set_title(f"{label[c]}: {len(s)} finished episodes", fontsize=9)
-        axes[-1, 0].set_xlabel("finished episode (write order)")
-        fig.suptitle(title)
-        fig.tight_layout()
-        written.append(_save(fig, os.path.join(out_dir, "success.png")))
-        plt.close(fig)
+def _success_figure(plt, c: dict[str, Any], codes: list[int], label: dict[int, str], window: int):
+    """Per env, the rolling success of finished episodes, each run's mean and the run boundaries."""
+    success, done, run, env = c["success"], c["done"], c["run"], c["env"]
+    fig, axes = plt.subplots(len(codes), 1, figsize=(8, 2.8 * len(codes)), squeeze=False)
+    for ax, code in zip(axes[:, 0], codes):
+        ends = np.flatnonzero(done & (env == code))
+        s = success[ends].astype(float)
+        r = run[ends]
+        x = np.arange(len(s))
+        if len(s):
+            k = min(window, len(s))
+            rolling = np.convolve(s, np.ones(k) / k, mode="valid")
+            ax.plot(x[k - 1:], rolling, color="tab:blue", label=f"rolling mean ({k} episodes)")
+            for rid in np.unique(r):
+                idx = np.flatnonzero(r == rid)
+                ax.hlines(s[idx].mean(), idx[0], idx[-1], color="tab:orange", lw=2)
+                ax.axvline(idx[0], color="grey", lw=0.5, ls=":")
+                ax.text(idx[0], 1.02, f"run {rid}", fontsize=7, va="bottom")
+            ax.plot([], [], color="tab:orange", lw=2, label="mean per run")
+            ax.legend(loc="lower right", fontsize=7)
+        ax.set_ylim(-0.02, 1.1)
+        ax.set_ylabel("episode success")
+        ax.set_title(f"{label[code]}: {len(s)} finished episodes", fontsize=9)
+    axes[-1, 0].set_xlabel("finished episode (write order)")
+    fig.suptitle(c["title"])
+    fig.tight_layout()
+    return fig
 
-    if goals is not None:
-        fig, axes = plt.subplots(1, len(codes), figsize=(4.2 * len(codes), 4), squeeze=False)
-        for ax, c in zip(axes[0], codes):
-            rows = np.flatnonzero(env == c)
-            if len(rows) > max_points:
-                rows = rows[np.linspace(0, len(rows) - 1, max_points).astype(np.int64)]
-            g = goals[rows]
-            y = g[:, 1] if g.shape[1] > 1 else np.zeros(len(g))
-            ok = success[rows] if success is not None else np.zeros(len(rows), bool)
-            ax.scatter(g[~ok, 0], y[~ok], s=3, c="lightgrey", label="not successful", rasterized=True)
-            ax.scatter(g[ok, 0], y[ok], s=3, c="tab:green", label="successful", rasterized=True)
-            ax.set_xlabel(f"{'/'.join(gkey) if isinstance(gkey, tuple) else gkey}[0]")
-            ax.set_ylabel("[1]" if g.shape[1] > 1 else "")
-            ax.set_title(f"{label[c]}: {len(rows)} rows", fontsize=9)
-            ax.legend(loc="best", fontsize=7, markerscale=3)
-        fig.suptitle(title)
-        fig.tight_layout()
-        written.append(_save(fig, os.path.join(out_dir, "goals.png")))
-        plt.close(fig)
-    return written
+
+def _goals_figure(plt, c: dict[str, Any], codes: list[int], label: dict[int, str], max_points: int):
+    """Per env, the first two achieved-goal dimensions, successful rows in green over the others in grey."""
+    goals, success, env, gkey = c["goals"], c["success"], c["env"], c["gkey"]
+    fig, axes = plt.subplots(1, len(codes), figsize=(4.2 * len(codes), 4), squeeze=False)
+    for ax, code in zip(axes[0], codes):
+        rows = np.flatnonzero(env == code)
+        if len(rows) > max_points:
+            rows = rows[np.linspace(0, len(rows) - 1, max_points).astype(np.int64)]
+        g = goals[rows]
+        y = g[:, 1] if g.shape[1] > 1 else np.zeros(len(g))
+        ok = success[rows] if success is not None else np.zeros(len(rows), bool)
+        ax.scatter(g[~ok, 0], y[~ok], s=3, c="lightgrey", label="not successful", rasterized=True)
+        ax.scatter(g[ok, 0], y[ok], s=3, c="tab:green", label="successful", rasterized=True)
+        ax.set_xlabel(f"{'/'.join(gkey) if isinstance(gkey, tuple) else gkey}[0]")
+        ax.set_ylabel("[1]" if g.shape[1] > 1 else "")
+        ax.set_title(f"{label[code]}: {len(rows)} rows", fontsize=9)
+        ax.legend(loc="best", fontsize=7, markerscale=3)
+    fig.suptitle(c["title"])
+    fig.tight_layout()
+    return fig
 
 
 def _save(fig, path: str) -> str:

@@ -1,0 +1,244 @@
+"""A memory as one ``.npz`` file: :func:`export_npz` writes it, :func:`import_npz` reads it into a new memory.
+
+The file holds one array per stored key (nested keys joined with ``/``, e.g.
+``next/observation``), rows in write order (oldest first), the tag columns
+``episode`` / ``run`` / ``env`` among them, and ``__robotmem__``: a 0-d string
+array holding JSON (env names, data kind, ``ndim``, ``max_size``, ``rows``).
+Nothing is pickled. ``import`` restores every column and tag, so
+npz -> memory -> npz is bit-exact. Both build their output beside the target
+and rename it into place (:mod:`._build`); a truncated or damaged file is one
+:class:`~torchrl_robotmem.cli.CLIError` naming it, and nothing is created.
+"""
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+import zlib
+from typing import Any
+
+import numpy as np
+
+from . import CLIError
+from ._build import atomic_target, check_target, new_store, progress
+from ._memory import TAGS, column, open_memory, root_attrs, write_order
+
+__all__ = ["META_KEY", "NPZ_FORMAT", "NPZ_VERSION", "export_npz", "import_npz", "open_npz"]
+
+META_KEY = "__robotmem__"
+NPZ_FORMAT = "torchrl_robotmem.npz"
+NPZ_VERSION = 1
+#: What reading a truncated or damaged npz member raises (zlib, zip and numpy's own checks).
+_NPZ_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
+def export_npz(path: Any, out: str) -> dict[str, Any]:
+    """Writes every column of the memory at ``path`` to ``out`` (``.npz``), rows in write order.
+
+    Args:
+        path: the memory (opened read-only).
+        out (str): the ``.npz`` file to create (refused if it exists).
+
+    Returns:
+        the JSON metadata written under ``__robotmem__``.
+
+    Example:
+        >>> import tempfile, numpy as np, torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_robotmem import ZarrStorage
+        >>> from torchrl_robotmem.cli.npz_io import export_npz
+        >>> d = tempfile.mkdtemp()
+        >>> st = ZarrStorage(d + "/m.zarr", 10, env="FetchReach-v4", background=False)
+        >>> st.set(slice(0, 3), TensorDict({"obs": torch.arange(3.0), ("next", "done"): torch.ones(3, 1, dtype=torch.bool)}, [3]))
+        >>> st.close()
+        >>> meta = export_npz(d + "/m.zarr", d + "/m.npz")
+        >>> sorted(np.load(d + "/m.npz").files)
+        ['__robotmem__', 'env', 'episode', 'next/done', 'obs', 'run']
+        >>> np.load(d + "/m.npz")["episode"].tolist(), meta["env_names"]
+        ([0, 1, 2], ['FetchReach-v4'])
+    """
+    check_target(out)
+    if not out.endswith(".npz"):
+        raise CLIError(f"{out!r}: an npz export's name ends with .npz")
+    storage = open_memory(path)
+    try:
+        attrs = root_attrs(storage)
+        schema = attrs.get("schema") or {}
+        if META_KEY in schema:
+            raise CLIError(f"the memory has a key named {META_KEY!r}, which the npz format reserves")
+        order = write_order(storage)
+        arrays = {p: column(storage, tuple(p.split("/")) if "/" in p else p, order)
+                  for p in progress(sorted(schema), desc="export", unit="key")}
+        meta = {
+            "format": NPZ_FORMAT,
+            "version": NPZ_VERSION,
+            "source": str(storage.path),
+            "env_names": list(storage.env_names),
+            "kind": attrs.get("kind"),
+            "ndim": int(attrs.get("ndim", 1)),
+            "max_size": int(storage.max_size),
+            "rows": len(storage),
+            "schema": schema,
+        }
+    finally:
+        storage.close()
+    with atomic_target(out) as tmp:
+        np.savez(tmp, **arrays, **{META_KEY: np.array(json.dumps(meta))})
+    return meta
+
+
+def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | None = None) -> int:
+    """Creates the memory ``path`` from an ``.npz`` written by :func:`export_npz`; returns its rows.
+
+    Args:
+        src (str): the ``.npz`` file (loaded with ``allow_pickle=False``).
+        path (str): the memory to create (refused if it exists).
+
+    Keyword Args:
+        max_size (int, optional): capacity; defaults to the exported memory's.
+        env (str, optional): tag every row with this env instead of the exported env tags.
+
+    Example:
+        >>> import tempfile, numpy as np, torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_robotmem import ZarrStorage
+        >>> from torchrl_robotmem.cli.npz_io import export_npz, import_npz
+        >>> d = tempfile.mkdtemp()
+        >>> st = ZarrStorage(d + "/a.zarr", 10, background=False)
+        >>> st.set(slice(0, 4), TensorDict({"obs": torch.arange(4.0)}, [4]))
+        >>> st.close()
+        >>> _ = export_npz(d + "/a.zarr", d + "/a.npz")
+        >>> import_npz(d + "/a.npz", d + "/b.zarr")
+        4
+        >>> ZarrStorage(d + "/b.zarr", read_only=True)["obs"].tolist()
+        [0.0, 1.0, 2.0, 3.0]
+    """
+    check_target(path)
+    arrays, meta = _read_export(src)
+    rows = int(meta.get("rows", 0))
+    ndim = int(meta.get("ndim", 1))
+    capacity = int(max_size or meta.get("max_size") or rows)
+    if capacity < rows:
+        raise CLIError(f"--max-size {capacity} is smaller than the {rows} rows in {src!r}")
+    with new_store(path, capacity, ndim=ndim, background=False) as storage:
+        if rows:
+            _load_rows(storage, arrays, meta, src=src, env=env)
+        elif env is not None:
+            storage.env = env
+    return rows
+
+
+def _read_export(src: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """``(arrays, metadata)`` of the npz export ``src``, every array checked against the metadata."""
+    if not os.path.isfile(src):
+        raise CLIError(f"{src!r} is not a file")
+    data, meta = open_npz(src)
+    if meta.get("format") != NPZ_FORMAT or int(meta.get("version", 0)) > NPZ_VERSION:
+        raise CLIError(f"{src!r}: unknown npz format {meta.get('format')!r} version {meta.get('version')!r}")
+    keys = [k for k in data.files if k != META_KEY]
+    schema = meta.get("schema") or {}
+    missing = sorted(set(schema) - set(keys))
+    if missing:
+        raise CLIError(f"{src!r} lacks the arrays {missing} its metadata lists (a cut-off export?); export it again")
+    arrays = {k: _read_npz_array(data, src, k) for k in progress(keys, desc="read", unit="key")}
+    rows = int(meta.get("rows", 0))
+    ndim = int(meta.get("ndim", 1))
+    lead = None
+    for k, a in arrays.items():
+        spec = schema.get(k)
+        if spec is not None and (str(a.dtype) != spec["dtype"] or
+                                 list(a.shape[a.ndim - len(spec["shape"]):]) != spec["shape"]):
+            raise CLIError(f"{src!r}: array {k!r} has dtype {a.dtype} and shape {list(a.shape)}, "
+                           f"its metadata says {spec['dtype']} {spec['shape']} per row")
+        n0 = a.shape[0] if a.ndim else None
+        if n0 is None or (lead is not None and n0 != lead[1]) or (ndim == 1 and n0 != rows):
+            raise CLIError(f"{src!r}: array {k!r} holds {n0} rows, but "
+                           + (f"{lead[0]!r} holds {lead[1]}" if lead is not None and n0 != lead[1]
+                              else f"the metadata says {rows}") + " (a cut-off or edited export); export it again")
+        lead = lead or (k, n0)
+    return arrays, meta
+
+
+def _load_rows(storage, arrays: dict[str, np.ndarray], meta: dict[str, Any], *, src: str, env: str | None) -> None:
+    """Loads the exported rows and tags into the new ``storage`` (its ``load_state_dict``)."""
+    import torch
+    from tensordict import TensorDict
+
+    ndim = int(meta.get("ndim", 1))
+    tag_arrays = {k: arrays.pop(k) for k in TAGS if k in arrays}
+    lead = next(iter(tag_arrays.values())).shape if tag_arrays else None
+    body = {k: torch.from_numpy(a) for k, a in arrays.items()}
+    td = TensorDict.from_dict(_nest(body), batch_size=lead or [len(next(iter(body.values())))],
+                              auto_batch_size=False)
+    env_names = list(meta.get("env_names", []))
+    zarr_meta: dict[str, Any] = {"kind": meta.get("kind"), "ndim": ndim, "env_names": env_names}
+    if tag_arrays:
+        tags = {k: torch.from_numpy(a) for k, a in tag_arrays.items()}
+        if env is not None:
+            zarr_meta["env_names"] = [env]
+            tags["env"] = torch.zeros_like(tags["env"])
+        zarr_meta["tags"] = TensorDict(tags, batch_size=lead).state_dict()
+    rows = int(meta.get("rows", 0))
+    try:
+        storage.load_state_dict({"_storage": td, "_len": rows, "initialized": True, "zarr": zarr_meta})
+    except (ValueError, TypeError, KeyError) as err:  # what the storage refuses: a reserved key, a bad env code...
+        raise CLIError(f"{src!r}: {err}") from None
+
+
+def open_npz(src: str):
+    """``(NpzFile, metadata dict)`` of an npz export, or a :class:`CLIError` naming the file.
+
+    Args:
+        src (str): the ``.npz`` file (loaded with ``allow_pickle=False``).
+
+    Example:
+        >>> import os, tempfile, numpy as np
+        >>> from torchrl_robotmem.cli import CLIError
+        >>> from torchrl_robotmem.cli.npz_io import open_npz
+        >>> f = os.path.join(tempfile.mkdtemp(), "x.npz")
+        >>> np.savez(f, a=np.zeros(3))
+        >>> try:
+        ...     open_npz(f)
+        ... except CLIError as err:
+        ...     print(str(err).split("(")[1])
+        no '__robotmem__' array)
+    """
+    try:
+        data = np.load(src, allow_pickle=False)
+    except _NPZ_READ_ERRORS as err:
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (it cannot be read as npz: "
+                       f"{type(err).__name__}: {err}; a truncated file?)") from None
+    if not hasattr(data, "files"):
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (one .npy array, not an npz)")
+    try:
+        meta = json.loads(str(_read_npz_array(data, src, META_KEY)))
+    except CLIError:
+        if META_KEY in data.files:
+            raise
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (no {META_KEY!r} array)") from None
+    except ValueError as err:
+        raise CLIError(f"{src!r}: its {META_KEY!r} array is not JSON ({err})") from None
+    if not isinstance(meta, dict):
+        raise CLIError(f"{src!r}: its {META_KEY!r} array is not a JSON object")
+    return data, meta
+
+
+def _read_npz_array(data, src: str, key: str) -> np.ndarray:
+    if key not in data.files:
+        raise CLIError(f"{src!r} has no array {key!r}")
+    try:
+        return data[key]
+    except _NPZ_READ_ERRORS as err:
+        raise CLIError(f"{src!r}: array {key!r} cannot be read ({type(err).__name__}: {err}); the file is "
+                       f"truncated or damaged: export it again") from None
+
+
+def _nest(flat: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for path, value in flat.items():
+        node = out
+        parts = path.split("/")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return out
