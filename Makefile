@@ -28,11 +28,11 @@ demo: install
 # workers on two cores take ~0.8x the wall time of one. PYTEST_ARGS="-n 0": serial.
 PYTEST_ARGS ?= -n 2
 test: install
-	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes
+	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 lint: install
-	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes
+	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools
 
 bench: install
 	$(PY) benchmarks/bench_storage.py

@@ -9,7 +9,8 @@ project keeps (``tests/test_structure.py`` asserts them):
 * no import cycle inside the package, counting function-local imports;
 * nothing in ``torchrl_robotmem/storage/`` imports the package root;
 * no module reads a private name (``obj._name`` or ``from m import _name``)
-  that another module of the package defines.
+  that another module of the package defines, and no module imports a private
+  module (``_backend``) from outside the package that holds it.
 
 Everything is read with :mod:`ast`; nothing is imported or executed.
 """
@@ -198,10 +199,22 @@ def private_reads(modules: dict[str, Module]) -> list[tuple[str, int, str]]:
                 if target.split(".")[0] != PACKAGE:
                     continue
                 for alias in node.names:
-                    if alias.name.startswith("_") and not alias.name.startswith("__") \
-                            and f"{target}.{alias.name}" not in modules:
+                    full = f"{target}.{alias.name}"
+                    if not alias.name.startswith("_") or alias.name.startswith("__"):
+                        continue
+                    if full not in modules or not _inside(mod.name, target):
+                        # a private name, or a private module imported from outside its package
                         out.append((mod.name, node.lineno, alias.name))
+                if target in modules and not _inside(mod.name, target.rsplit(".", 1)[0]) \
+                        and target.rsplit(".", 1)[-1].startswith("_") \
+                        and not target.rsplit(".", 1)[-1].startswith("__"):
+                    out.append((mod.name, node.lineno, target.rsplit(".", 1)[-1]))
     return sorted(out)
+
+
+def _inside(module: str, package: str) -> bool:
+    """Whether ``module`` lives in ``package`` (its private modules are its own business)."""
+    return module == package or module.startswith(package + ".")
 
 
 def report(root: Path = ROOT) -> dict:
@@ -211,7 +224,7 @@ def report(root: Path = ROOT) -> dict:
                                        "function": MAX_FUNCTION}[r[0]]]
     return {
         "largest": {kind: max((r for r in rows if r[0] == kind), key=lambda r: r[2])[1:]
-                    for kind in ("module", "class", "function")},
+                    for kind in ("module", "class", "function") if any(r[0] == kind for r in rows)},
         "over_limits": over,
         "cycles": cycles(modules),
         "storage_imports_root": root_imports(modules),
