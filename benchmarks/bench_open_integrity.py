@@ -65,7 +65,7 @@ def main() -> None:
     s = ZarrStorage(path, read_only=True)
     attrs = s._group.attrs.asdict()
     arrays = {p: s._group[p] for p in attrs["schema"]}
-    listing = _median(lambda: integrity._missing_chunks(arrays, attrs, store=s._store, local_dir=s._local_dir),
+    listing = _median(lambda: integrity.missing_chunks(arrays, attrs, store=s._store, local_dir=s._local_dir),
                       args.repeat)
     after_read = _median(lambda: integrity.missing_after_read(s._group, attrs, store=s._store, local_dir=s._local_dir),
                          args.repeat)

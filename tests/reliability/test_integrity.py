@@ -28,7 +28,7 @@ from tensordict import TensorDict
 
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.cli import main
-from torchrl_robotmem.storage import integrity
+from torchrl_robotmem.storage import _backend
 from torchrl_robotmem.storage.integrity import IntegrityError, repair, verify
 
 ROWS, CHUNK, MAX = 300, 64, 1000
@@ -224,7 +224,7 @@ def _downgrade(path):
         old = group[name]
         data = old[:]
         new = group.create_array(name, shape=old.shape, chunks=old.chunks, dtype=old.dtype, fill_value=0,
-                                 compressors=integrity._backend.make_compressors("blosc", 1, old.dtype.itemsize,
+                                 compressors=_backend.make_compressors("blosc", 1, old.dtype.itemsize,
                                                                                  checksum=False),
                                  overwrite=True)
         new[:] = data  # Zarr's default: all-zero chunks are not written

@@ -1,0 +1,90 @@
+"""What a store's sizes cost: sizes no process on this machine could hold, found before anything is allocated.
+
+A commit record claiming a ``max_size`` of 10^15 rows (or a row of a petabyte)
+would make an open allocate its RAM mirror, and ``verify`` decode a chunk, until
+the machine gives up; :func:`capacity_problem` names the attribute at fault first.
+
+Example:
+    >>> from torchrl_robotmem.storage.integrity.capacity import capacity_problem
+    >>> attrs = {"max_size": 10**15, "chunk_rows": 1000, "schema": {"obs": {"dtype": "float32", "shape": [3]}}}
+    >>> capacity_problem(attrs).what.split(":")[0]
+    "attribute 'max_size' (1000000000000000)"
+"""
+from __future__ import annotations
+
+import math
+import os
+
+from .. import _backend
+from ..errors import Problem
+from ..format import dims
+from ..schema import PackedLayout
+
+__all__ = ["capacity_problem"]
+
+
+def _memory_limit() -> int | None:
+    """Bytes this process could ever allocate: RAM + swap, or its address-space / data limit if lower."""
+    limit = None
+    try:
+        limit = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("SwapTotal:"):
+                    limit += int(line.split()[1]) * 1024
+    except (ValueError, OSError, AttributeError):
+        pass
+    try:
+        import resource
+
+        for which in (resource.RLIMIT_AS, resource.RLIMIT_DATA):
+            soft = resource.getrlimit(which)[0]
+            if soft != resource.RLIM_INFINITY and soft > 0:
+                limit = soft if limit is None else min(limit, soft)
+    except (ImportError, OSError, ValueError):
+        pass
+    return limit
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if n < 1000 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n} B"
+
+
+def capacity_problem(attrs: dict, *, mirror: bool = True) -> Problem | None:
+    """Sizes of sane attributes that no process here could hold, as a problem naming the field; else ``None``.
+
+    ``mirror``: the RAM mirror a ``ZarrStorage`` allocates (``max_size`` rows);
+    otherwise one chunk (what ``verify`` decodes at a time).
+    """
+    if not attrs.get("schema"):
+        return None
+    max_dim0, _, inner = dims(attrs)
+    chunk_rows = int(attrs["chunk_rows"])
+    per_row = max(math.prod(inner), 1) * PackedLayout(attrs["schema"]).row_bytes
+    rows = max(max_dim0, chunk_rows) if mirror else chunk_rows
+    limit = _memory_limit()
+    if limit is None or rows * per_row <= limit:
+        return None
+
+    def leaf(spec):
+        return _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).itemsize * math.prod(spec["shape"])
+
+    path, spec = max(attrs["schema"].items(), key=lambda kv: leaf(kv[1]))
+    if leaf(spec) * max(math.prod(inner), 1) * 1024 > limit:
+        field = f"attribute 'schema' entry {path!r} (shape {spec['shape']})"
+    elif inner and math.prod(inner) * 1024 > limit:
+        field = f"attribute 'inner_shape' ({list(inner)})"
+    elif chunk_rows >= max_dim0 or not mirror:
+        field = f"attribute 'chunk_rows' ({chunk_rows})"
+    else:
+        field = f"attribute 'max_size' ({attrs['max_size']})"
+    what = "its RAM mirror" if mirror else "one chunk"
+    return Problem("capacity", f"{field}: {what} of {rows} rows of {per_row} bytes would take {_size(rows * per_row)}, "
+                   f"more than this machine can allocate ({_size(limit)}: RAM + swap, or this process's limit)",
+                   key="zarr.json")
+
+

@@ -1,0 +1,101 @@
+"""The checks ``ZarrStorage`` makes at open, before it reads or writes anything (:func:`check_open`).
+
+In order: the commit record's attributes (:mod:`.attributes`), the sizes it
+claims (:mod:`.capacity`), every array's metadata against the schema and every
+chunk file below the committed length (:mod:`.arrays`, :mod:`.chunks`), a
+pending journal, and, where asked, every chunk decoded. A damaged store raises
+:class:`~torchrl_robotmem.storage.errors.IntegrityError`; a reader that asked
+``on_damage="warn"`` is told, and opens with the rows before the first damaged chunk.
+
+Example:
+    >>> import tempfile, torch, zarr
+    >>> from tensordict import TensorDict
+    >>> from torchrl_robotmem import ZarrStorage
+    >>> from torchrl_robotmem.storage.integrity import check_open
+    >>> path = tempfile.mkdtemp() + "/memory.zarr"
+    >>> with ZarrStorage(path, 100) as storage:
+    ...     storage.set(slice(0, 10), TensorDict({"obs": torch.ones(10, 3)}, [10]))
+    >>> group = zarr.open_group(path, mode="r")
+    >>> attrs = group.attrs.asdict()
+    >>> check_open(group, attrs, store=group.store, local_dir=path, path=path, read_only=True) == attrs
+    True
+"""
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import zarr
+
+from ..errors import IntegrityError, Problem
+from ..format import decode_chunks, dims, numel
+from .arrays import check_arrays, check_journal, decode_journal_chunks
+from .attributes import check_attributes
+from .capacity import capacity_problem
+
+__all__ = ["check_open"]
+
+
+def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any, read_only: bool,
+               on_damage: str = "raise", decode: bool = False, list_chunks: bool = True) -> dict:
+    """The checks ``ZarrStorage`` makes at open, before it reads or writes anything.
+
+    Raises :class:`IntegrityError` naming the arrays and chunks at fault. With
+    ``on_damage="warn"`` (read-only opens), damaged or missing chunks are
+    reported in a warning and the returned attributes commit only the rows
+    before the first damaged chunk (in RAM: nothing is written). ``decode``
+    also decodes every chunk below the committed length (done for writable
+    opens that write before reading: a journal replay or growing the store).
+
+    Returns the attributes to open with.
+    """
+    problems = check_attributes(attrs)
+    if any(p.kind == "format" for p in problems):
+        return attrs  # ZarrStorage's own format check says what to do
+    capacity = None if problems else capacity_problem(attrs)
+    if capacity is not None:  # before anything is listed or allocated
+        raise ValueError(f"The store at {path!r} cannot be opened on this machine: {capacity.what}. "
+                         f"Nothing was read or changed; `robotmem verify {path}` checks it chunk by chunk.")
+    if not problems:
+        problems += _array_problems(group, attrs, store=store, local_dir=local_dir, list_chunks=list_chunks,
+                                    decode=decode or on_damage == "warn", decode_journal=decode)
+    # warnings (chunks an old store may have left out as all-zero) are for verify, not every open
+    errors = [p for p in problems if p.severity == "error"]
+    if not errors:
+        return attrs
+    data_only = all(p.kind in ("missing_chunk", "checksum", "undecodable") for p in errors)
+    if not (read_only and on_damage == "warn" and data_only):
+        raise IntegrityError(path, errors, read_only=read_only)
+    cut = min(p.rows[0] for p in errors)
+    _, n0, _ = dims(attrs)
+    warnings.warn(
+        f"{IntegrityError(path, errors, read_only=True, action='')}\non_damage='warn': reading the "
+        f"{cut} rows before the first damaged chunk (of {n0} committed).",
+        stacklevel=4,
+    )
+    return {**attrs, "len": min(int(attrs.get("len", 0)), cut * numel(attrs)), "cursor": cut % dims(attrs)[0],
+            "last_cursor": cut - 1, "journal": None}
+
+
+def _array_problems(group: Any, attrs: dict, *, store: Any, local_dir: Any, list_chunks: bool, decode: bool,
+                    decode_journal: bool) -> list[Problem]:
+    """The arrays and chunk files of sane attributes; with ``decode``, every chunk below the length decoded."""
+    def get_array(p):
+        node = group[p]
+        if not isinstance(node, zarr.Array):
+            raise ValueError(f"{p!r} is a group, not an array")
+        return node
+
+    present: dict = {}
+    problems, arrays = check_arrays(get_array, attrs, store=store, local_dir=local_dir, list_chunks=list_chunks,
+                                    present=present)
+    journal = attrs.get("journal")
+    if journal and not any(p.kind == "metadata" for p in problems):
+        problems += check_journal(get_array, attrs, arrays, present if list_chunks else None)
+    if decode and not any(p.kind in ("metadata", "journal") for p in problems):
+        _, n0, _ = dims(attrs)
+        for p, arr in arrays.items():
+            problems += decode_chunks(arr, p, n0, int(attrs["chunk_rows"]), present.get(p))[0]
+        if journal and decode_journal:
+            problems += decode_journal_chunks(group.__getitem__, attrs)
+    return problems
