@@ -38,20 +38,48 @@ __all__ = ["atomic_target", "check_target", "is_local", "new_store", "progress",
 
 
 def progress(iterable, **kwargs):
-    """``iterable`` with a tqdm progress bar, shown only on a terminal."""
+    """``iterable`` with a tqdm progress bar, shown only on a terminal.
+
+    Args:
+        iterable: what to iterate over.
+        **kwargs: passed to :class:`tqdm.auto.tqdm` (``desc``, ``unit``, ...).
+
+    Example:
+        >>> from torchrl_robotmem.cli._build import progress
+        >>> sum(progress(range(4), desc="rows"))
+        6
+    """
     from tqdm.auto import tqdm
 
     return tqdm(iterable, disable=None, leave=False, **kwargs)  # disable=None: only on a terminal
 
 
 def check_target(path: str) -> None:
-    """Raises a :class:`CLIError` if ``path`` exists: an output is never overwritten."""
+    """Raises a :class:`CLIError` if ``path`` exists: an output is never overwritten.
+
+    Args:
+        path (str): the output a command is about to create.
+
+    Example:
+        >>> import tempfile
+        >>> from torchrl_robotmem.cli._build import check_target
+        >>> check_target(tempfile.mkdtemp() + "/new.npz")  # free: no error
+    """
     if os.path.lexists(path):
         raise CLIError(f"{path!r} exists; refusing to overwrite it. Remove it or choose another name.")
 
 
 def is_local(path: Any) -> bool:
-    """Whether ``path`` names a local file or directory (not a store URL), which can be renamed into place."""
+    """Whether ``path`` names a local file or directory (not a store URL), which can be renamed into place.
+
+    Args:
+        path: a path, ``os.PathLike`` or store URL.
+
+    Example:
+        >>> from torchrl_robotmem.cli._build import is_local
+        >>> is_local("memory/fetch.zarr"), is_local("s3://bucket/fetch.zarr")
+        (True, False)
+    """
     from torchrl_robotmem.storage import is_url, normalize_path
 
     name = normalize_path(path)
@@ -80,6 +108,17 @@ def remove_stale_partials(path: str) -> list[str]:
 
     Only names of the form ``.NAME.partial-PID`` in the target's own directory
     are considered; nothing else is touched.
+
+    Args:
+        path (str): the target whose leftover builds to remove.
+
+    Example:
+        >>> import os, tempfile
+        >>> from torchrl_robotmem.cli._build import remove_stale_partials
+        >>> d = tempfile.mkdtemp()
+        >>> os.mkdir(d + "/.m.zarr.partial-999999999")  # no such process
+        >>> [os.path.basename(p) for p in remove_stale_partials(d + "/m.zarr")], os.listdir(d)
+        (['.m.zarr.partial-999999999'], [])
     """
     removed = []
     for partial, pid in partial_builds(path):
@@ -94,10 +133,18 @@ def remove_stale_partials(path: str) -> list[str]:
 def atomic_target(path: str, *, inner: str | None = None) -> Iterator[str]:
     """Yields the hidden sibling to build ``path`` in; renames it to ``path`` if the block succeeds.
 
-    ``inner``: the block builds ``SIBLING/inner`` (a Minari dataset inside its
-    datasets root), which is what becomes ``path``. On any error, and on a
-    ``KeyboardInterrupt``, the sibling is removed; a SIGKILL leaves it, and the
-    next command on ``path`` removes it.
+    On any error, and on a ``KeyboardInterrupt``, the sibling is removed (with
+    the parent directories made for it); a SIGKILL leaves it, and the next
+    command on ``path`` removes it.
+
+    Args:
+        path (str): the target (a local path).
+
+    Keyword Args:
+        inner (str, optional): the block builds ``SIBLING/inner`` (a Minari
+            dataset inside its datasets root), which is what becomes ``path``.
+
+    Example: see the module docstring.
     """
     parent = os.path.dirname(os.path.abspath(path))
     missing = []  # the directories made for the target, deepest first: removed again if it is not made
@@ -132,6 +179,23 @@ def new_store(path: str, capacity: int, **kwargs) -> Iterator[ZarrStorage]:
 
     If the import fails, or is killed, nothing is at ``path``. A store URL is
     written in place (an object store has no rename) and left as it is on failure.
+
+    Args:
+        path (str): the memory to create.
+        capacity (int): its ``max_size``.
+        **kwargs: passed to :class:`~torchrl_robotmem.ZarrStorage` (``ndim``, ``background``, ...).
+
+    Example:
+        >>> import os, tempfile, torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_robotmem.cli._build import new_store
+        >>> d = tempfile.mkdtemp()
+        >>> with new_store(d + "/m.zarr", 10, background=False) as st:
+        ...     st.set(slice(0, 2), TensorDict({"obs": torch.zeros(2)}, [2]))
+        ...     os.path.exists(d + "/m.zarr")
+        False
+        >>> os.listdir(d)
+        ['m.zarr']
     """
     from torchrl_robotmem.storage import ZarrStorage
 

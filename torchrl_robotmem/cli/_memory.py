@@ -90,7 +90,8 @@ def incomplete_build_error(path: Any, code: int = 2) -> CLIError | None:
 
 def open_memory(path: Any):
     """A read-only :class:`~torchrl_robotmem.ZarrStorage` on ``path``, or a :class:`CLIError` saying why not."""
-    from torchrl_robotmem.storage import FORMAT_MARKER, ZarrStorage, is_url, normalize_path
+    from torchrl_robotmem.storage import ZarrStorage, is_url, normalize_path
+    from torchrl_robotmem.storage.format import FORMAT_MARKER
 
     incomplete = incomplete_build_error(path)
     if incomplete is not None:
@@ -123,12 +124,31 @@ def root_attrs(storage) -> dict:
 
 
 def is_full(storage) -> bool:
-    """Whether every slot of the ring holds an item (the next write overwrites the oldest)."""
+    """Whether every slot of the ring holds an item (the next write overwrites the oldest).
+
+    Args:
+        storage: a :class:`~torchrl_robotmem.ZarrStorage` (or any TorchRL storage with ``max_size``).
+
+    Example:
+        >>> import tempfile, torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_robotmem import ZarrStorage
+        >>> from torchrl_robotmem.cli._memory import is_full, stored_along_dim0
+        >>> st = ZarrStorage(tempfile.mkdtemp() + "/m.zarr", 4, background=False)
+        >>> st.set(slice(0, 3), TensorDict({"obs": torch.zeros(3)}, [3]))
+        >>> is_full(st), stored_along_dim0(st)
+        (False, 3)
+        >>> st.close()
+    """
     return storage.initialized and len(storage) == storage.max_size
 
 
 def stored_along_dim0(storage) -> int:
-    """How many positions along the first dimension hold items (TorchRL's ``storage.shape[0]``)."""
+    """How many positions along the first dimension hold items (TorchRL's ``storage.shape[0]``); 0 before any write.
+
+    Args:
+        storage: an initialized or empty TorchRL ``TensorStorage``; example in :func:`is_full`.
+    """
     return int(storage.shape[0]) if storage.initialized else 0
 
 

@@ -85,7 +85,8 @@ def summarize(path: Any, *, cell: float = 0.05, goal: str | None = None) -> dict
 
 
 def _summarize(storage, *, cell: float, goal) -> dict[str, Any]:
-    from torchrl_robotmem.storage import FORMAT_MARKER, store_size_bytes
+    from torchrl_robotmem.storage import store_size_bytes
+    from torchrl_robotmem.storage.format import FORMAT_MARKER
 
     attrs = root_attrs(storage)
     schema = attrs.get("schema") or {}

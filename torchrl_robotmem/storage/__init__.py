@@ -14,7 +14,6 @@ One job a module, as TorchRL splits storages, writers and checkpointers:
 from __future__ import annotations
 
 from ._backend import (  # the store helpers cli/ and memory.py use, public here
-    FORMAT_MARKER,
     is_url,
     key_to_path,
     normalize_path,
@@ -27,6 +26,6 @@ from .tags import TAG_KEYS
 from .zarr_storage import ZarrCheckpointer, ZarrStorage
 
 __all__ = [
-    "FORMAT_MARKER", "TAG_KEYS", "ZarrCheckpointer", "ZarrStorage", "is_url", "key_to_path", "normalize_path",
-    "path_to_key", "store_exists", "store_size_bytes", "torch_dtype",
+    "TAG_KEYS", "ZarrCheckpointer", "ZarrStorage", "is_url", "key_to_path", "normalize_path", "path_to_key",
+    "store_exists", "store_size_bytes", "torch_dtype",
 ]
