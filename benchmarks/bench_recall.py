@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_robotmem.recall import GoalIndex
+from torchrl_robotmem.goal_index import GoalIndex
 
 torch.set_num_threads(1)
 

@@ -3,7 +3,7 @@
 ``HandManipulateBlock-v1`` goals are 7-D poses: position xyz + orientation
 quaternion wxyz. Plain Euclidean distance on those 7 numbers mixes metres with
 quaternion components and calls ``q`` and ``-q`` (the same orientation) far
-apart. ``metric="pose"`` (:class:`~torchrl_robotmem.recall.metrics.PoseMetric`)
+apart. ``metric="pose"`` (:class:`~torchrl_robotmem.goal_index.metrics.PoseMetric`)
 measures ``|dp| + 0.1 m/rad * rotation angle``.
 
 1. A ``Collector`` plays with a random policy; transitions go to a ZarrStorage.

@@ -17,7 +17,7 @@ from torchrl.data import HERReplayBuffer, LazyTensorStorage, TensorDictReplayBuf
 from torchrl.envs.utils import RandomPolicy
 
 from torchrl_robotmem import GoalSimilaritySampler, RecallTransform, ZarrStorage, make_env, make_reward_fn, recall
-from torchrl_robotmem.recall import GoalIndex
+from torchrl_robotmem.goal_index import GoalIndex
 
 # ROBOTMEM_TEST_DEVICE=cpu runs the same checks on the CPU (to check the tests themselves without a GPU)
 DEVICE = os.environ.get("ROBOTMEM_TEST_DEVICE", "cuda")

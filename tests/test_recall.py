@@ -14,8 +14,8 @@ from _rows import unit_quat
 from tensordict import TensorDict
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
-from torchrl_robotmem.recall import GoalIndex, recall
-from torchrl_robotmem.recall.metrics import EuclideanMetric, PoseMetric, get_metric
+from torchrl_robotmem.goal_index import GoalIndex, recall
+from torchrl_robotmem.goal_index.metrics import EuclideanMetric, PoseMetric, get_metric
 
 torch.set_num_threads(1)
 

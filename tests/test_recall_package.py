@@ -21,8 +21,8 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from torchrl_robotmem import GoalIndex, GoalSimilaritySampler, RecallTransform, RobotMemory, ZarrStorage, make_env
-from torchrl_robotmem.recall import RowFilter, recall
-from torchrl_robotmem.recall.metrics import EuclideanMetric, PoseMetric
+from torchrl_robotmem.goal_index import RowFilter, recall
+from torchrl_robotmem.goal_index.metrics import EuclideanMetric, PoseMetric
 
 torch.set_num_threads(1)
 
@@ -273,3 +273,137 @@ def test_member_rows_and_revision_are_public():
     rb.extend(fetch_rows(50, gen, start=300, tags=True))
     assert index.revision > rev
     assert index.member_rows().numel() == 350
+
+
+# -- one filter argument ----------------------------------------------------------------
+def test_the_subpackage_and_the_function_have_different_names():
+    import importlib
+
+    import torchrl_robotmem
+
+    assert torchrl_robotmem.recall is recall and callable(recall)
+    assert importlib.import_module("torchrl_robotmem.goal_index").GoalIndex is GoalIndex
+    with pytest.raises(ModuleNotFoundError):  # the old subpackage path is gone, not shimmed
+        importlib.import_module("torchrl_robotmem.recall")
+
+
+def two_env_store(path):
+    """A real ZarrStorage of two runs: 1500 FetchPush-v4 rows (run 0), then 1000 FetchSlide-v4 rows (run 1)."""
+    gen = torch.Generator().manual_seed(11)
+    storage = ZarrStorage(path, 4000, env="FetchPush-v4", chunk_rows=64)
+    TensorDictReplayBuffer(storage=storage).extend(clustered_rows(1500, gen))
+    storage.close()
+    storage = ZarrStorage(path, env="FetchSlide-v4")
+    TensorDictReplayBuffer(storage=storage).extend(clustered_rows(1000, gen, start=1500))
+    storage.flush()
+    return storage
+
+
+FILTER_FORMS = [
+    {"success_only": True},
+    {"env": "FetchSlide-v4"},
+    {"run": [0]},
+    {"success_only": True, "env": ["FetchPush-v4"], "max_distance": 0.3},
+    {"env": 1, "one_per_episode": True},
+]
+
+
+def test_filter_keywords_and_row_filter_give_the_same_rows(tmp_path):
+    storage = two_env_store(tmp_path / "f.zarr")
+    rb = TensorDictReplayBuffer(storage=storage)
+    mem = RobotMemory(tmp_path / "f.zarr", read_only=True)
+    index = GoalIndex.for_storage(storage)
+    queries = torch.rand(6, 3, generator=torch.Generator().manual_seed(3))
+    goals = TensorDict({"desired_goal": queries}, [6])
+    for kw in FILTER_FORMS:
+        flt = RowFilter(**kw)
+        assert RowFilter.coerce(**kw) == RowFilter.coerce(flt) == RowFilter.coerce(dict(kw)) == flt
+        dist, rows, mask = index.search(queries, 5, **kw)
+        assert mask.any(), kw  # (rows pass the filter: the answer is not all padding)
+        for form in (flt, dict(kw)):
+            for x, y in zip(index.search(queries, 5, filter=form), (dist, rows, mask), strict=True):
+                assert torch.equal(x, y), kw
+            assert torch.equal(recall(rb, queries, 5, filter=form)["index"], rows)
+            assert torch.equal(index.member_rows(form), index.member_rows(**kw))
+        assert torch.equal(recall(rb, queries, 5, **kw)["index"], rows)
+        assert torch.equal(index.recall(queries, 5, **kw)["index"], rows)
+        # the memory's own reader (another ZarrStorage object on the same store): the same rows
+        assert torch.equal(mem.recall(queries, top_k=5, **kw)["index"], rows)
+        assert torch.equal(mem.recall(queries, top_k=5, filter=flt)["index"], rows)
+        by_keywords = RecallTransform(rb, 5, **kw)
+        by_filter = RecallTransform(rb, 5, filter=flt)
+        assert by_keywords.filter == by_filter.filter == flt
+        priors = by_keywords.forward(goals.clone())
+        assert torch.equal(priors["prior_goals_mask"], mask)
+        assert torch.equal(priors["prior_goals"], by_filter.forward(goals.clone())["prior_goals"])
+        sampler = GoalSimilaritySampler(num_candidates=16, **kw)
+        assert sampler.filter == GoalSimilaritySampler(filter=flt).filter == flt
+        fresh = GoalSimilaritySampler()
+        fresh.load_state_dict(sampler.state_dict())
+        assert fresh.filter == flt
+        if bool(mask[:, 0].all()):
+            srb = TensorDictReplayBuffer(storage=storage, sampler=sampler, batch_size=64)
+            with sampler.query(queries):
+                drawn = srb.sample()["index"]
+            assert np.isin(drawn.numpy(), index.member_rows(flt).numpy()).all(), kw
+    mem.close()
+    storage.close()
+
+
+def test_each_bad_filter_keyword_is_named(tmp_path):
+    storage = two_env_store(tmp_path / "b.zarr")
+    rb = TensorDictReplayBuffer(storage=storage)
+    mem = RobotMemory(tmp_path / "b.zarr", read_only=True)
+    index = GoalIndex.for_storage(storage)
+    q = torch.zeros(3)
+    readers = {
+        "GoalIndex.search": lambda **kw: index.search(q, 3, **kw),
+        "GoalIndex.recall": lambda **kw: index.recall(q, 3, **kw),
+        "GoalIndex.member_rows": lambda **kw: index.member_rows(**kw),
+        "recall": lambda **kw: recall(rb, q, 3, **kw),
+        "GoalSimilaritySampler": lambda **kw: GoalSimilaritySampler(**kw),
+        "RecallTransform": lambda **kw: RecallTransform(rb, 3, **kw),
+        "RobotMemory.recall": lambda **kw: mem.recall(q, 3, **kw),
+        "RowFilter.coerce": lambda **kw: RowFilter.coerce(**kw),
+    }
+    bad = [
+        ({"sucess_only": True}, TypeError, "unknown filter keyword 'sucess_only'"),
+        ({"radius": 0.1}, TypeError, "'radius'"),
+        ({"success_only": "yes"}, ValueError, "success_only must be a bool"),
+        ({"env": []}, ValueError, "env must be"),
+        ({"env": 1.5}, ValueError, "env must be"),
+        ({"run": "first"}, ValueError, "run must be"),
+        ({"max_distance": -1.0}, ValueError, "max_distance must be >= 0"),
+        ({"max_distance": "far"}, ValueError, "max_distance must be a number"),
+        ({"one_per_episode": "yes"}, ValueError, "one_per_episode must be a bool"),
+        ({"filter": RowFilter(success_only=True), "env": "FetchPush-v4"}, ValueError, "filter= or env=, not both"),
+        ({"filter": {"success_only": True}, "run": 0}, ValueError, "filter= or run=, not both"),
+        ({"filter": {"succes": True}}, TypeError, "'succes'"),
+        ({"filter": 3}, TypeError, "filter must be a RowFilter"),
+        ({"filter": "success_only"}, TypeError, "filter must be a RowFilter"),
+    ]
+    for name, call in readers.items():
+        for kw, error, match in bad:
+            with pytest.raises(error, match=match):
+                call(**kw)
+                pytest.fail(f"{name}({kw}) did not raise")
+    # a name the storage does not know is caught where it is resolved, naming the known ones
+    with pytest.raises(ValueError, match="known envs"):
+        index.search(q, 3, env="HandReach-v3")
+    mem.close()
+    storage.close()
+
+
+def test_row_filter_from_a_hydra_config():
+    instantiate = pytest.importorskip("hydra.utils").instantiate
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create({"_target_": "torchrl_robotmem.goal_index.RowFilter", "success_only": True,
+                            "env": ["FetchPush-v4", "FetchSlide-v4"], "run": 1, "max_distance": 0.5})
+    flt = instantiate(cfg)
+    assert flt == RowFilter(success_only=True, env=("FetchPush-v4", "FetchSlide-v4"), run=(1,), max_distance=0.5)
+    sampler = instantiate({"_target_": "torchrl_robotmem.GoalSimilaritySampler", "num_candidates": 8, "filter": cfg})
+    assert sampler.filter == flt
+    # a plain mapping without _target_ (a DictConfig group) is coerced too
+    assert GoalSimilaritySampler(filter=OmegaConf.create({"env": ["FetchPush-v4"]})).filter == RowFilter(env="FetchPush-v4")
+    assert RowFilter(**flt.to_dict()) == flt

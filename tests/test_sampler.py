@@ -9,7 +9,7 @@ import pytest
 import torch
 from torchrl.data import HERReplayBuffer, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
-from torchrl_robotmem.recall import GoalIndex
+from torchrl_robotmem.goal_index import GoalIndex
 from torchrl_robotmem.sampler import GoalSimilaritySampler
 
 torch.set_num_threads(1)

@@ -12,7 +12,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from torchrl_robotmem import ZarrStorage, make_env
-from torchrl_robotmem.recall import GoalIndex
+from torchrl_robotmem.goal_index import GoalIndex
 from torchrl_robotmem.transform import RecallTransform
 
 K = 4
@@ -361,7 +361,7 @@ def test_pickling_needs_a_path(memories, tmp_path):
     t = RecallTransform(path, K)
     t.forward(TensorDict({"desired_goal": torch.zeros(3)}, []))  # opens the store
     clone = pickle.loads(pickle.dumps(t))
-    assert clone._storage is None  # reopened lazily by the receiving process
+    assert clone._source._storage is None  # reopened lazily by the receiving process
     goal = TensorDict({"desired_goal": torch.tensor([1.3, 0.7, 0.42])}, [])
     assert torch.equal(clone.forward(goal.clone())["prior_goals"], t.forward(goal.clone())["prior_goals"])
 

@@ -4,7 +4,7 @@ Public surface:
 
 - :class:`ZarrStorage`: a TorchRL storage persisted in a Zarr v3 store.
 - :class:`GoalIndex` and :func:`recall`: exact nearest-goal lookup over a storage
-  (package :mod:`torchrl_robotmem.recall`).
+  (package :mod:`torchrl_robotmem.goal_index`).
 - :class:`GoalSimilaritySampler`: a TorchRL sampler drawing rows near query goals.
 - :class:`RecallTransform`: an env transform appending the nearest remembered goals.
 - :class:`RobotMemory`: robotmem's quick-start API over the same store.
@@ -14,8 +14,8 @@ from __future__ import annotations
 
 from ._version import __version__
 from .envs import make_env, make_reward_fn
+from .goal_index import GoalIndex, recall
 from .memory import RobotMemory
-from .recall import GoalIndex, recall
 from .sampler import GoalSimilaritySampler
 from .storage import ZarrStorage
 from .transform import RecallTransform

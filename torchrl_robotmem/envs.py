@@ -165,6 +165,33 @@ def _make_base_env(
     return env
 
 
+def _episode_steps(bare_id: str, max_episode_steps: int | None) -> int:
+    """The episode length: ``max_episode_steps`` checked, or the id's registered one."""
+    if max_episode_steps is None:
+        import gymnasium
+
+        return gymnasium.spec(bare_id).max_episode_steps
+    if max_episode_steps < 1:
+        raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}.")
+    return max_episode_steps
+
+
+def _base_env(bare_id: str, num_envs: int, parallel: bool, device: str, gym_kwargs: dict[str, Any]):
+    """The untransformed env: one :class:`~torchrl.envs.GymEnv` reading ``is_success``
+    from the step info, or ``num_envs`` of them batched in a
+    :class:`~torchrl.envs.SerialEnv` (a :class:`~torchrl.envs.ParallelEnv`
+    with ``parallel``, one spawned process per env).
+    """
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}.")
+    create = functools.partial(_make_base_env, _PREFIX + bare_id, device, gym_kwargs)
+    if num_envs == 1:
+        return create()
+    if parallel:
+        return ParallelEnv(num_envs, EnvCreator(create), device=device)
+    return SerialEnv(num_envs, create, device=device)
+
+
 def make_env(
     env_id: str,
     num_envs: int = 1,
@@ -178,17 +205,11 @@ def make_env(
 ) -> TransformedEnv:
     """Builds a Gymnasium-Robotics goal-conditioned task as a TorchRL env.
 
-    The base env is a :class:`~torchrl.envs.GymEnv` that reads ``is_success``
-    from the step info. It is wrapped in
-    ``Compose(DoubleToFloat(), StepCounter(max_steps), InitTracker(), *transforms)``.
-    The dict observation stays flat: ``observation``, ``achieved_goal``,
+    The base env (:func:`_base_env`) is wrapped in ``Compose(DoubleToFloat(),
+    StepCounter(max_steps), InitTracker(), *transforms)``, outside a batched
+    env. The dict observation stays flat: ``observation``, ``achieved_goal``,
     ``desired_goal``, ``is_success`` (float32, shape ``(*B,)``) and
     ``step_count`` live at the root and under ``"next"``.
-
-    With ``num_envs > 1`` the base envs are batched in a
-    :class:`~torchrl.envs.SerialEnv` (or :class:`~torchrl.envs.ParallelEnv`)
-    and the transforms are applied *outside* the batched env, so they run
-    once on the ``[num_envs]`` batch in the main process.
 
     Args:
         env_id (str): a Fetch (``-v4``), HandReach (``-v3``) or HandManipulate
@@ -196,8 +217,10 @@ def make_env(
             without the ``"gymnasium_robotics:"`` prefix. The env is always
             built from the prefixed id so that spawned workers register the
             robotics envs.
-        num_envs (int, optional): number of envs. ``1`` returns an unbatched
-            env (batch size ``[]``). Default: ``1``.
+        num_envs (int, optional): number of envs, batched in one env whose
+            transforms run once on the ``[num_envs]`` batch in the main
+            process. ``1`` returns an unbatched env (batch size ``[]``).
+            Default: ``1``.
 
     Keyword Args:
         seed (int, optional): passed to ``env.set_seed`` (batched envs seed
@@ -240,37 +263,10 @@ def make_env(
         >>> batched.close()
     """
     bare_id, _ = _resolve(env_id)
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}.")
-    if max_episode_steps is None:
-        import gymnasium
-
-        max_episode_steps = gymnasium.spec(bare_id).max_episode_steps
-    elif max_episode_steps < 1:
-        raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}.")
-
-    create = functools.partial(
-        _make_base_env,
-        _PREFIX + bare_id,
-        device,
-        {**gym_kwargs, "max_episode_steps": max_episode_steps},
-    )
-    if num_envs == 1:
-        base = create()
-    elif parallel:
-        base = ParallelEnv(num_envs, EnvCreator(create), device=device)
-    else:
-        base = SerialEnv(num_envs, create, device=device)
-
-    env = TransformedEnv(
-        base,
-        Compose(
-            DoubleToFloat(),
-            StepCounter(max_steps=max_episode_steps),
-            InitTracker(),
-            *(transforms or ()),
-        ),
-    )
+    max_episode_steps = _episode_steps(bare_id, max_episode_steps)
+    base = _base_env(bare_id, num_envs, parallel, device, {**gym_kwargs, "max_episode_steps": max_episode_steps})
+    standard = (DoubleToFloat(), StepCounter(max_steps=max_episode_steps), InitTracker())
+    env = TransformedEnv(base, Compose(*standard, *(transforms or ())))
     env.env_id = bare_id
     env.max_episode_steps = max_episode_steps
     if seed is not None:

@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
-from .recall import GoalIndex, RowFilter
+from .goal_index import GoalIndex, RowFilter
 from .storage import TAG_KEYS, ZarrStorage, key_to_path, path_to_key, store_exists, torch_dtype
 
 __all__ = ["RobotMemory"]
@@ -233,12 +233,10 @@ class RobotMemory:
         desired_goal: Any,
         top_k: int = 5,
         *,
-        success_only: bool = False,
-        env: str | list[str] | None = None,
-        max_distance: float | None = None,
+        filter: RowFilter | Mapping[str, Any] | None = None,
         context_filter: Mapping[str, Any] | None = None,
         spatial_sort: Mapping[str, Any] | None = None,
-        one_per_episode: bool = False,
+        **filter_keywords: Any,
     ) -> TensorDictBase:
         """The ``top_k`` stored transitions whose achieved goals are nearest ``desired_goal``.
 
@@ -247,16 +245,19 @@ class RobotMemory:
             top_k (int): how many to return. Defaults to 5.
 
         Keyword Args:
-            success_only (bool): only transitions with ``is_success``.
-            env (str or list of str): only transitions from these environments.
-            max_distance (float): only transitions at most this far.
+            filter (RowFilter or mapping, optional): which transitions may be
+                returned (:class:`~torchrl_robotmem.goal_index.RowFilter`).
+            **filter_keywords: the same as keywords instead:
+                ``success_only=True`` (only transitions with ``is_success``),
+                ``env`` (only these environments), ``run``, ``max_distance``
+                (only transitions at most this far), ``one_per_episode=True``
+                (the ``top_k`` results come from ``top_k`` different episodes,
+                the nearest transition of each).
             context_filter (dict): robotmem-style filters, e.g.
                 ``{"task.success": True, "env": "FetchPush-v4"}``.
             spatial_sort (dict): robotmem-style ``{"field": ..., "target": goal}``; the
                 ``target`` replaces ``desired_goal`` (results are always sorted by
                 distance to the query).
-            one_per_episode (bool): the ``top_k`` results come from ``top_k``
-                different episodes (the nearest transition of each).
 
         Returns:
             a TensorDict of batch ``[top_k]`` (or ``[B, top_k]``) with every stored key
@@ -270,16 +271,13 @@ class RobotMemory:
                     raise KeyError(
                         f"Unsupported context_filter key {key!r}; supported: {sorted(_CONTEXT_FILTERS)}."
                     )
-                if _CONTEXT_FILTERS[key] == "success_only":
-                    success_only = bool(value)
-                else:
-                    env = value
+                name = _CONTEXT_FILTERS[key]
+                filter_keywords[name] = bool(value) if name == "success_only" else value
         if spatial_sort is not None:
             if "target" not in spatial_sort:
                 raise KeyError("spatial_sort needs a 'target' goal, e.g. {'target': desired_goal}.")
             desired_goal = spatial_sort["target"]
-        return self.index.recall(desired_goal, top_k, filter=RowFilter(success_only=success_only, env=env),
-                                 max_distance=max_distance, one_per_episode=one_per_episode)
+        return self.index.recall(desired_goal, top_k, filter=filter, **filter_keywords)
 
     def __len__(self) -> int:
         return len(self.storage)

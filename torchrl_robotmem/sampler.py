@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,9 +22,9 @@ from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
-from torchrl_robotmem.recall import GoalIndex, RowFilter
-from torchrl_robotmem.recall.metrics import GoalMetric
-from torchrl_robotmem.recall.tracking import live_column
+from torchrl_robotmem.goal_index import GoalIndex, RowFilter
+from torchrl_robotmem.goal_index.metrics import GoalMetric
+from torchrl_robotmem.goal_index.tracking import live_column
 
 __all__ = ["GoalSimilaritySampler"]
 
@@ -43,11 +43,11 @@ class GoalSimilaritySampler(Sampler):
     """Samples transitions whose achieved goals are near query goals.
 
     Without a query it samples uniformly, like :class:`~torchrl.data.RandomSampler`,
-    over the rows that pass the ``success_only`` / ``env`` filters.
+    over the rows that pass the filter's ``success_only`` / ``env`` / ``run``.
     With a query (one goal or ``[Q, goal_dim]`` goals, e.g. the goals the envs
     are chasing now) the batch is spread evenly over the ``Q`` queries; for
     each query the ``num_candidates`` nearest stored rows are found with an
-    exact :class:`~torchrl_robotmem.recall.GoalIndex` (same filters) and rows
+    exact :class:`~torchrl_robotmem.goal_index.GoalIndex` (same filter) and rows
     are drawn, with replacement, with probabilities
     ``softmax(-distance / temperature)`` over those candidates. A fraction
     ``uniform_ratio`` of the batch is drawn uniformly instead (among the rows
@@ -61,7 +61,7 @@ class GoalSimilaritySampler(Sampler):
     multinomial draw.
 
     The GoalIndex is the storage's shared one (:meth:`GoalIndex.for_storage
-    <torchrl_robotmem.recall.GoalIndex.for_storage>`, also used by
+    <torchrl_robotmem.goal_index.GoalIndex.for_storage>`, also used by
     :func:`~torchrl_robotmem.recall`, :class:`~torchrl_robotmem.RecallTransform`
     and :class:`~torchrl_robotmem.RobotMemory`) for the same keys and metric. Use ``prefetch=None`` on the buffer: prefetched
     batches would have been drawn under an earlier query.
@@ -72,18 +72,22 @@ class GoalSimilaritySampler(Sampler):
         success_key (NestedKey): success flag read by ``success_only``.
             Defaults to ``("next", "is_success")``.
         metric (str): ``"euclidean"`` (default) or ``"pose"`` (see
-            :mod:`torchrl_robotmem.recall.metrics`).
+            :mod:`torchrl_robotmem.goal_index.metrics`).
         metric_kwargs (dict, optional): keyword arguments of the metric.
         temperature (float): softmax temperature, in goal-distance units.
             Defaults to ``0.05`` (5 cm for Fetch goals).
         num_candidates (int): nearest rows considered per query. Defaults to 256.
-        success_only (bool): only sample successful rows. Defaults to ``False``.
-        env (str, int or list, optional): only sample rows of these envs (names
-            or codes of the storage's ``env`` column).
         env_names (list of str, optional): names of the env codes when the
             storage has no ``env_names`` attribute.
         uniform_ratio (float): fraction of the batch sampled uniformly.
             Defaults to ``0.0``.
+        filter (RowFilter or mapping, optional): which rows are sampled (see
+            :class:`~torchrl_robotmem.goal_index.RowFilter`): ``success_only``,
+            ``env`` (names or codes of the storage's ``env`` column) and
+            ``run`` for every draw; ``max_distance`` and ``one_per_episode``
+            for the near candidates of a query. Defaults to every row.
+        **filter_keywords: the same as keywords instead, e.g.
+            ``success_only=True, env="FetchPush-v4"``.
 
     Example:
         >>> import torch
@@ -117,10 +121,10 @@ class GoalSimilaritySampler(Sampler):
         metric_kwargs: dict | None = None,
         temperature: float = 0.05,
         num_candidates: int = 256,
-        success_only: bool = False,
-        env: str | int | Sequence[str | int] | None = None,
         env_names: Sequence[str] | None = None,
         uniform_ratio: float = 0.0,
+        filter: RowFilter | Mapping[str, Any] | None = None,
+        **filter_keywords,
     ):
         self.goal_key = _key_from_json(goal_key)
         self.success_key = _key_from_json(success_key)
@@ -128,8 +132,7 @@ class GoalSimilaritySampler(Sampler):
         self.metric_kwargs = dict(metric_kwargs or {})
         self.temperature = temperature
         self.num_candidates = num_candidates
-        self.success_only = success_only
-        self.env = env
+        self.filter = RowFilter.coerce(filter, **filter_keywords)
         self.env_names = env_names
         self.uniform_ratio = uniform_ratio
         self._check_config()
@@ -150,14 +153,18 @@ class GoalSimilaritySampler(Sampler):
         if not 0.0 <= u <= 1.0:
             raise ValueError(f"uniform_ratio must be in [0, 1], got {self.uniform_ratio}.")
         self.uniform_ratio = u
-        if not isinstance(self.success_only, (bool, np.bool_)):
-            raise ValueError(f"success_only must be a bool, got {self.success_only!r}.")
-        self.success_only = bool(self.success_only)
-        if isinstance(self.env, list):
-            self.env = tuple(self.env)
-        self._filter = RowFilter(success_only=self.success_only, env=self.env)
         if self.env_names is not None:
             self.env_names = tuple(self.env_names)
+
+    @property
+    def success_only(self) -> bool:
+        """``filter.success_only``: only successful rows are sampled."""
+        return self.filter.success_only
+
+    @property
+    def env(self) -> tuple[str | int, ...] | None:
+        """``filter.env``: the envs sampled from (``None``: every env)."""
+        return self.filter.env
 
     # -- query ----------------------------------------------------------------
     @property
@@ -216,14 +223,13 @@ class GoalSimilaritySampler(Sampler):
 
     def _candidates(self, index: GoalIndex):
         key = (id(index), index.revision, self._query_version, self.num_candidates, self.temperature,
-               self._filter)
+               self.filter)
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
-        dist, idx, mask = index.search(self._query, self.num_candidates, filter=self._filter)
+        dist, idx, mask = index.search(self._query, self.num_candidates, filter=self.filter)
         if not bool(mask[:, 0].all()):
             raise RuntimeError(
-                "no stored row matches the sampler's filters "
-                f"(success_only={self.success_only}, env={self.env!r}); cannot sample near the query."
+                f"no stored row matches the sampler's filter {self.filter!r}; cannot sample near the query."
             )
         logits = (-dist.double() / self.temperature).masked_fill(~mask, -math.inf)
         probs = torch.softmax(logits, dim=1)
@@ -232,14 +238,11 @@ class GoalSimilaritySampler(Sampler):
         return cand
 
     def _uniform_rows(self, index: GoalIndex, storage: Storage, n: int) -> torch.Tensor:
-        if self._filter.matches_all:
+        if self.filter.matches_all:
             return storage._rand_given_ndim(n)
-        rows = index.member_rows(self._filter)
+        rows = index.member_rows(self.filter)
         if rows.numel() == 0:
-            raise RuntimeError(
-                "no stored row matches the sampler's filters "
-                f"(success_only={self.success_only}, env={self.env!r})."
-            )
+            raise RuntimeError(f"no stored row matches the sampler's filter {self.filter!r}.")
         pick = torch.randint(rows.numel(), (n,), generator=self._rng)
         return rows[pick]
 
@@ -247,7 +250,7 @@ class GoalSimilaritySampler(Sampler):
         if len(storage) == 0:
             raise RuntimeError(_EMPTY_STORAGE_ERROR)
         if self._query is None:
-            if self._filter.matches_all:
+            if self.filter.matches_all:
                 return storage._rand_given_ndim(batch_size), {}
             # no query, but the filters still hold: uniform over the matching rows
             return self._uniform_rows(self.index_for(storage), storage, batch_size).to(torch.long), {}
@@ -303,8 +306,7 @@ class GoalSimilaritySampler(Sampler):
             "metric_kwargs": metric_kwargs,
             "temperature": self.temperature,
             "num_candidates": self.num_candidates,
-            "success_only": self.success_only,
-            "env": list(self.env) if isinstance(self.env, tuple) else self.env,
+            "filter": self.filter.to_dict(),
             "env_names": list(self.env_names) if self.env_names is not None else None,
             "uniform_ratio": self.uniform_ratio,
             "query": self._query.tolist() if self._query is not None else None,
@@ -317,8 +319,9 @@ class GoalSimilaritySampler(Sampler):
         self.metric_kwargs = dict(state_dict.get("metric_kwargs") or {})
         self.temperature = state_dict["temperature"]
         self.num_candidates = state_dict["num_candidates"]
-        self.success_only = state_dict["success_only"]
-        self.env = state_dict.get("env")
+        # "success_only" / "env": the state of a sampler saved before the filter was one value
+        self.filter = RowFilter.coerce(state_dict.get("filter"), success_only=state_dict.get("success_only"),
+                                       env=state_dict.get("env"))
         self.env_names = state_dict.get("env_names")
         self.uniform_ratio = state_dict["uniform_ratio"]
         self._check_config()
@@ -343,6 +346,6 @@ class GoalSimilaritySampler(Sampler):
         return (
             f"{type(self).__name__}(goal_key={self.goal_key}, metric={self.metric!r}, "
             f"temperature={self.temperature}, num_candidates={self.num_candidates}, "
-            f"success_only={self.success_only}, env={self.env!r}, "
+            f"filter={self.filter!r}, "
             f"uniform_ratio={self.uniform_ratio}, query={q})"
         )

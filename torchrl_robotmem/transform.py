@@ -3,7 +3,7 @@
 :class:`RecallTransform` sits in a TorchRL env (``TransformedEnv`` or the
 ``transforms=`` of :func:`~torchrl_robotmem.make_env`). Each time an env
 resets, it looks up the ``k`` stored transitions whose achieved goals lie
-nearest to the new ``desired_goal`` (a :class:`~torchrl_robotmem.recall.GoalIndex`
+nearest to the new ``desired_goal`` (a :class:`~torchrl_robotmem.goal_index.GoalIndex`
 search over a :class:`~torchrl_robotmem.ZarrStorage` or any TorchRL tensor
 storage) and writes them into the observation as ``prior_goals``
 ``[*B, k, goal_dim]``, ``prior_goals_dist`` ``[*B, k]`` and ``prior_goals_mask``
@@ -30,9 +30,9 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.data.replay_buffers.storages import Storage
 from torchrl.envs import Transform
 
-from .recall import GoalIndex, RowFilter
-from .recall.metrics import GoalMetric, get_metric
-from .recall.tracking import live_column
+from .goal_index import GoalIndex, RowFilter
+from .goal_index.metrics import GoalMetric, get_metric
+from .goal_index.tracking import live_column
 from .storage import ZarrStorage
 
 __all__ = ["RecallTransform"]
@@ -62,8 +62,8 @@ class RecallTransform(Transform):
     uninitialized storage with no rows yet) gives zeros and an all-``False``
     mask. The entries are part of the observation spec, so collectors store
     them with each transition. The search runs on the storage's shared
-    :class:`~torchrl_robotmem.recall.GoalIndex` (:meth:`GoalIndex.for_storage
-    <torchrl_robotmem.recall.GoalIndex.for_storage>`), the one a sampler or a
+    :class:`~torchrl_robotmem.goal_index.GoalIndex` (:meth:`GoalIndex.for_storage
+    <torchrl_robotmem.goal_index.GoalIndex.for_storage>`), the one a sampler or a
     :class:`~torchrl_robotmem.RobotMemory` on the same storage also uses.
 
     Put the transform *outside* a batched env (``TransformedEnv(SerialEnv(...),
@@ -89,14 +89,9 @@ class RecallTransform(Transform):
         out_keys (sequence of 3 NestedKeys): names of the recalled goals, their
             distances and the validity mask. Default:
             ``("prior_goals", "prior_goals_dist", "prior_goals_mask")``.
-        success_only (bool): recall only transitions that succeeded
-            (``("next", "is_success") > 0.5``). Default: ``False``.
-        env (str or sequence of str, optional): recall only rows written by these
-            environments (names from the storage's ``env_names``, e.g.
-            ``"FetchPush-v4"``). Default: every env.
         metric (str, GoalMetric or callable): ``"euclidean"`` (Fetch, HandReach)
             or ``"pose"`` (HandManipulate: position + rotation angle), see
-            :mod:`torchrl_robotmem.recall.metrics`. Default: ``"euclidean"``.
+            :mod:`torchrl_robotmem.goal_index.metrics`. Default: ``"euclidean"``.
         goal_key (NestedKey): stored column searched and returned as
             ``prior_goals``. Default: ``("next", "achieved_goal")``.
         context_keys (mapping, optional): stored key -> output key of extra
@@ -105,10 +100,6 @@ class RecallTransform(Transform):
         goal_dim (int, optional): size of a goal. Read from the memory, or from
             the env's ``in_key`` spec when the memory has no rows yet; pass it
             only when neither is available.
-        one_per_episode (bool): the ``k`` recalled goals come from ``k``
-            different episodes (the nearest transition of each of the ``k``
-            nearest episodes; needs an ``"episode"`` column, which
-            ``ZarrStorage`` writes). Default: ``False``.
         refresh_every (int, optional): for a read-only memory (a path, or a
             ``ZarrStorage`` opened ``read_only``) that another process is
             writing: re-read the store at the first reset after every
@@ -117,6 +108,15 @@ class RecallTransform(Transform):
             since. ``ZarrStorage.refresh()`` reads the whole store again, so
             pick ``N`` in thousands for large memories. Default: ``None``
             (the memory is read once).
+        filter (RowFilter or mapping, optional): which rows may be recalled
+            (:class:`~torchrl_robotmem.goal_index.RowFilter`). Default: any.
+        **filter_keywords: the same as keywords instead: ``success_only=True``
+            (transitions that succeeded, ``("next", "is_success") > 0.5``),
+            ``env="FetchPush-v4"`` (names from the storage's ``env_names``, or
+            codes), ``run``, ``max_distance``, ``one_per_episode=True`` (the
+            ``k`` goals come from ``k`` different episodes: the nearest
+            transition of each of the ``k`` nearest; needs the ``"episode"``
+            column ``ZarrStorage`` writes).
 
     Example:
         >>> import tempfile, torch
@@ -148,116 +148,78 @@ class RecallTransform(Transform):
         *,
         in_key: NestedKey = "desired_goal",
         out_keys: Sequence[NestedKey] = _DEFAULT_OUT_KEYS,
-        success_only: bool = False,
-        env: str | Sequence[str] | None = None,
         metric: str | GoalMetric | Callable = "euclidean",
         goal_key: NestedKey = ("next", "achieved_goal"),
         context_keys: Mapping[NestedKey, NestedKey] | None = None,
         goal_dim: int | None = None,
-        one_per_episode: bool = False,
         refresh_every: int | None = None,
+        filter: RowFilter | Mapping[str, Any] | None = None,
+        **filter_keywords: Any,
     ) -> None:
-        if isinstance(memory, os.PathLike):
-            memory = os.fspath(memory)
-        if not isinstance(memory, str) and not isinstance(
-            getattr(memory, "storage", memory), Storage
-        ):
-            raise TypeError(
-                "memory must be a store path (str), a TorchRL Storage or a replay buffer, "
-                f"got {type(memory).__name__}."
-            )
+        source = _MemorySource(memory, refresh_every)
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"k must be an integer >= 1, got {k!r}.")
-        out_keys = [unravel_key(key) for key in out_keys]
-        if len(out_keys) != 3:
-            raise ValueError(
-                "out_keys must name 3 entries (goals, distances, mask), got "
-                f"{len(out_keys)}: {out_keys}."
-            )
-        if not isinstance(success_only, bool):
-            raise ValueError(f"success_only must be a bool, got {success_only!r}.")
-        if env is not None:
-            names = [env] if isinstance(env, str) else list(env)
-            if not names or not all(isinstance(n, str) and n for n in names):
-                raise ValueError(
-                    f"env must be an env name or a non-empty list of names, got {env!r}."
-                )
-            env = names[0] if isinstance(env, str) else tuple(names)
         if goal_dim is not None and (
             isinstance(goal_dim, bool) or not isinstance(goal_dim, int) or goal_dim < 1
         ):
             raise ValueError(f"goal_dim must be an integer >= 1, got {goal_dim!r}.")
-        context = {}
-        for src, dst in dict(context_keys or {}).items():
-            context[unravel_key(src)] = unravel_key(dst)
-        all_out = [*out_keys, *context.values()]
-        if len(set(all_out)) != len(all_out):
-            raise ValueError(f"output keys must be distinct, got {all_out}.")
+        out_keys, context = _output_keys(out_keys, context_keys)
+        self.filter = RowFilter.coerce(filter, **filter_keywords)
         # Validates the name now rather than at the first reset, in a worker.
         metric_obj = get_metric(metric)
-        if not isinstance(one_per_episode, bool):
-            raise ValueError(f"one_per_episode must be a bool, got {one_per_episode!r}.")
-        if refresh_every is not None:
-            if isinstance(refresh_every, bool) or not isinstance(refresh_every, int) or refresh_every < 1:
-                raise ValueError(f"refresh_every must be an integer >= 1 or None, got {refresh_every!r}.")
-            if not isinstance(memory, str) and not _is_read_only(getattr(memory, "storage", memory)):
-                raise ValueError(
-                    "refresh_every applies to a read-only memory (a store path, or a ZarrStorage opened "
-                    f"read_only=True); a writable {type(getattr(memory, 'storage', memory)).__name__} "
-                    "is read live already."
-                )
-
-        super().__init__(in_keys=[unravel_key(in_key)], out_keys=all_out)
-        self.memory = memory
+        super().__init__(in_keys=[unravel_key(in_key)], out_keys=[*out_keys, *context.values()])
+        self._source = source
         self.k = k
-        self.success_only = success_only
-        self.env_filter = env
-        self.one_per_episode = one_per_episode
-        self.refresh_every = refresh_every
-        self._filter = RowFilter(success_only=success_only, env=env)
-        self._steps = 0  # env steps since the memory was last (re)read
         self.metric = metric
         self.goal_key = unravel_key(goal_key)
         self.context_keys = context
         self.goal_dim = goal_dim
         self._metric_obj = metric_obj
-        self._storage: Storage | None = None
         self._index: GoalIndex | None = None
         self._cache: TensorDictBase | None = None
 
     # -- memory ---------------------------------------------------------------
 
     @property
+    def memory(self) -> str | Storage | Any:
+        """What was passed as ``memory``: a store path, a storage or a replay buffer."""
+        return self._source.memory
+
+    @property
+    def refresh_every(self) -> int | None:
+        """Steps between re-reads of a read-only memory (``None``: read once)."""
+        return self._source.refresh_every
+
+    @property
     def storage(self) -> Storage:
         """The storage recalled from (a path is opened ``read_only`` on first access)."""
-        if self._storage is None:
-            if isinstance(self.memory, str):
-                self._storage = ZarrStorage(self.memory, read_only=True)
-            else:
-                self._storage = getattr(self.memory, "storage", self.memory)
-        return self._storage
+        return self._source.storage
 
     @property
     def index(self) -> GoalIndex:
-        """The storage's shared :class:`~torchrl_robotmem.recall.GoalIndex`, searched at each reset."""
+        """The storage's shared :class:`~torchrl_robotmem.goal_index.GoalIndex`, searched at each reset."""
         if self._index is None:
             self._index = GoalIndex.for_storage(self.storage, goal_key=self.goal_key, metric=self._metric_obj)
         return self._index
 
     def refresh(self) -> None:
         """Re-reads a read-only memory now, to see the rows committed since it was opened."""
-        storage = self.storage
-        if _is_read_only(storage):
-            storage.refresh()
-        self._steps = 0
+        self._source.refresh()
 
-    def _stored(self, key: NestedKey) -> torch.Tensor | None:
-        """The storage's column for ``key`` (``[max_size, *shape]``), or None before any write."""
-        return live_column(self.storage, key)
+    @property
+    def success_only(self) -> bool:
+        """``filter.success_only``: only transitions that succeeded are recalled."""
+        return self.filter.success_only
 
-    def _memory_len(self) -> int:
-        storage = self.storage
-        return len(storage) if storage.initialized else 0
+    @property
+    def env_filter(self) -> tuple[str | int, ...] | None:
+        """``filter.env``: the envs recalled from (``None``: every env)."""
+        return self.filter.env
+
+    @property
+    def one_per_episode(self) -> bool:
+        """``filter.one_per_episode``: the ``k`` goals come from ``k`` different episodes."""
+        return self.filter.one_per_episode
 
     # -- recall ---------------------------------------------------------------
 
@@ -277,9 +239,9 @@ class RecallTransform(Transform):
             batch_size=[n],
             device=device,
         )
-        if n and self._memory_len():
+        if n and len(self._source):
             # search + the few columns needed: GoalIndex.recall would gather every stored key.
-            dist, index, mask = self.index.search(flat, k, filter=self._filter, one_per_episode=self.one_per_episode)
+            dist, index, mask = self.index.search(flat, k, filter=self.filter)
             if mask.shape[-1] < k:  # k above the storage's capacity: the index returns max_size, the spec has k
                 w = mask.shape[-1]
                 dist = torch.cat([dist, dist.new_full((n, k - w), float("inf"))], -1)
@@ -290,7 +252,7 @@ class RecallTransform(Transform):
                 out.set(dist_out, dist.masked_fill(~mask, 0.0).to(device))
                 rows = index.clamp_min(0)
                 for src, dst in ((self.goal_key, goal_out), *self.context_keys.items()):
-                    column = self._stored(src)
+                    column = self._source.column(src)
                     value = column[rows.to(column.device)].reshape(n, k, *shapes[dst][0])
                     value[~mask.to(value.device)] = 0
                     out.set(dst, value.to(device, shapes[dst][1]))
@@ -308,7 +270,7 @@ class RecallTransform(Transform):
         return shapes
 
     def _context_shape(self, key: NestedKey) -> tuple[tuple[int, ...], torch.dtype]:
-        column = self._stored(key)
+        column = self._source.column(key)
         if column is not None:
             return tuple(column.shape[1:]), column.dtype
         # No rows yet: the stored key will be what the env emits.
@@ -336,7 +298,7 @@ class RecallTransform(Transform):
         return tuple(spec.shape[len(batch) :]), spec.dtype
 
     def _resolve_goal_dim(self, spec_dim: int | None) -> int:
-        column = self._stored(self.goal_key)
+        column = self._source.column(self.goal_key)
         stored = None if column is None else int(torch.Size(column.shape[1:]).numel())
         dims = {"goal_dim": self.goal_dim, "memory": stored, "env spec": spec_dim}
         known = {name: d for name, d in dims.items() if d is not None}
@@ -355,8 +317,7 @@ class RecallTransform(Transform):
     # -- Transform API ---------------------------------------------------------
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        if self.refresh_every is not None and self._steps >= self.refresh_every:
-            self.refresh()
+        self._source.refresh_if_due()
         goals = tensordict_reset.get(self.in_keys[0])
         batch = tensordict_reset.batch_size
         reset = self._reset_mask(tensordict, batch)
@@ -377,7 +338,7 @@ class RecallTransform(Transform):
         return self._reset(tensordict, tensordict_reset)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        self._steps += 1
+        self._source.count_step()
         cache = self._cache
         if cache is None or cache.batch_size != next_tensordict.batch_size:
             # Stepped without a reset through this transform (e.g. appended to a
@@ -436,19 +397,9 @@ class RecallTransform(Transform):
     # -- housekeeping -----------------------------------------------------------
 
     def __getstate__(self) -> dict[str, Any]:
-        if not isinstance(self.memory, str) and isinstance(self.storage, ZarrStorage):
-            path = self.storage.path
-            raise RuntimeError(
-                "A RecallTransform over a ZarrStorage object cannot be sent to another process "
-                "(multi-process collectors, ParallelEnv workers). Pass the store's path instead, "
-                f"RecallTransform({path!r}, ...): each process then opens it read_only."
-            )
         state = super().__getstate__()
-        if isinstance(self.memory, str):  # reopened by whoever unpickles it
-            state["_storage"] = None
         state["_index"] = None  # the shared index of the storage where it lands
         state["_cache"] = None
-        state["_steps"] = 0
         return state
 
     def __repr__(self) -> str:
@@ -456,10 +407,8 @@ class RecallTransform(Transform):
         extra = "".join(
             f", {name}={value!r}"
             for name, value in (
-                ("success_only", self.success_only),
-                ("env", self.env_filter),
+                ("filter", None if self.filter == RowFilter() else self.filter),
                 ("context_keys", self.context_keys or None),
-                ("one_per_episode", self.one_per_episode),
                 ("refresh_every", self.refresh_every),
             )
             if value
@@ -468,6 +417,99 @@ class RecallTransform(Transform):
             f"{type(self).__name__}(memory={memory!r}, k={self.k}, in_key={self.in_keys[0]!r}, "
             f"out_keys={self.out_keys}, metric={self._metric_obj!r}{extra})"
         )
+
+
+def _output_keys(out_keys: Sequence[NestedKey], context_keys: Mapping[NestedKey, NestedKey] | None
+                 ) -> tuple[list[NestedKey], dict[NestedKey, NestedKey]]:
+    """The 3 output keys and the context map (stored key -> output key), checked: all distinct."""
+    out_keys = [unravel_key(key) for key in out_keys]
+    if len(out_keys) != 3:
+        raise ValueError(
+            "out_keys must name 3 entries (goals, distances, mask), got "
+            f"{len(out_keys)}: {out_keys}."
+        )
+    context = {unravel_key(src): unravel_key(dst) for src, dst in dict(context_keys or {}).items()}
+    all_out = [*out_keys, *context.values()]
+    if len(set(all_out)) != len(all_out):
+        raise ValueError(f"output keys must be distinct, got {all_out}.")
+    return out_keys, context
+
+
+class _MemorySource:
+    """Where a :class:`RecallTransform` reads: a store path opened ``read_only`` on
+    first use, or a live storage / replay buffer; and when a read-only one is re-read.
+
+    Args:
+        memory: a store path (str or os.PathLike), a TorchRL Storage or a replay buffer.
+        refresh_every (int, optional): re-read a read-only memory at the first
+            reset after this many counted steps.
+    """
+
+    def __init__(self, memory: str | os.PathLike | Storage | Any, refresh_every: int | None) -> None:
+        if isinstance(memory, os.PathLike):
+            memory = os.fspath(memory)
+        if not isinstance(memory, str) and not isinstance(getattr(memory, "storage", memory), Storage):
+            raise TypeError(
+                "memory must be a store path (str), a TorchRL Storage or a replay buffer, "
+                f"got {type(memory).__name__}."
+            )
+        if refresh_every is not None:
+            if isinstance(refresh_every, bool) or not isinstance(refresh_every, int) or refresh_every < 1:
+                raise ValueError(f"refresh_every must be an integer >= 1 or None, got {refresh_every!r}.")
+            if not isinstance(memory, str) and not _is_read_only(getattr(memory, "storage", memory)):
+                raise ValueError(
+                    "refresh_every applies to a read-only memory (a store path, or a ZarrStorage opened "
+                    f"read_only=True); a writable {type(getattr(memory, 'storage', memory)).__name__} "
+                    "is read live already."
+                )
+        self.memory = memory
+        self.refresh_every = refresh_every
+        self._storage: Storage | None = None
+        self._steps = 0  # env steps since the memory was last (re)read
+
+    @property
+    def storage(self) -> Storage:
+        if self._storage is None:
+            if isinstance(self.memory, str):
+                self._storage = ZarrStorage(self.memory, read_only=True)
+            else:
+                self._storage = getattr(self.memory, "storage", self.memory)
+        return self._storage
+
+    def __len__(self) -> int:
+        """Rows stored (0 for a storage not initialized yet)."""
+        storage = self.storage
+        return len(storage) if storage.initialized else 0
+
+    def column(self, key: NestedKey) -> torch.Tensor | None:
+        """The storage's column for ``key`` (``[max_size, *shape]``), or None before any write."""
+        return live_column(self.storage, key)
+
+    def count_step(self) -> None:
+        self._steps += 1
+
+    def refresh_if_due(self) -> None:
+        if self.refresh_every is not None and self._steps >= self.refresh_every:
+            self.refresh()
+
+    def refresh(self) -> None:
+        storage = self.storage
+        if _is_read_only(storage):
+            storage.refresh()
+        self._steps = 0
+
+    def __getstate__(self) -> dict[str, Any]:
+        if not isinstance(self.memory, str) and isinstance(self.storage, ZarrStorage):
+            raise RuntimeError(
+                "A RecallTransform over a ZarrStorage object cannot be sent to another process "
+                "(multi-process collectors, ParallelEnv workers). Pass the store's path instead, "
+                f"RecallTransform({self.storage.path!r}, ...): each process then opens it read_only."
+            )
+        state = dict(self.__dict__)
+        if isinstance(self.memory, str):  # reopened by whoever unpickles it
+            state["_storage"] = None
+        state["_steps"] = 0
+        return state
 
 
 def _is_read_only(storage: Any) -> bool:

@@ -1,8 +1,8 @@
 """The index facade: :class:`GoalIndex`, the shared index of a storage, and :func:`recall`.
 
 :class:`GoalIndex` answers "which stored transitions achieved the goals
-closest to this one?" (top-k, with success / env / run filters, optionally
-one match per episode) on the live columns of a
+closest to this one?" (top-k, under a :class:`~.filters.RowFilter`: success /
+env / run, a distance limit, one match per episode) on the live columns of a
 :class:`~torchrl.data.replay_buffers.storages.TensorStorage`
 (``LazyTensorStorage``, ``LazyMemmapStorage``, ``ZarrStorage``), exactly.
 :meth:`GoalIndex.for_storage` returns *the* index of a storage, the one that
@@ -10,15 +10,14 @@ one match per episode) on the live columns of a
 :class:`~torchrl_robotmem.RecallTransform` and
 :class:`~torchrl_robotmem.RobotMemory` share. The work is done by
 :mod:`.tracking` (following the storage), :mod:`.views` (one set of segments
-per filter) and :mod:`.segments` (exact search).
+per filter), :mod:`.segments` (exact search), :mod:`.queries` (checking the
+query) and :mod:`.shared` (the shared indexes).
 """
 from __future__ import annotations
 
-import math
 import threading
-import weakref
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -27,10 +26,12 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers.storages import TensorStorage
 
-from torchrl_robotmem.recall.filters import FilterKey, RowFilter
-from torchrl_robotmem.recall.metrics import GoalMetric, get_metric
-from torchrl_robotmem.recall.tracking import ColumnTracker, as_tensor_storage, stored_rows
-from torchrl_robotmem.recall.views import FilterView
+from torchrl_robotmem.goal_index.filters import FilterKey, RowFilter
+from torchrl_robotmem.goal_index.metrics import GoalMetric, get_metric
+from torchrl_robotmem.goal_index.queries import check_k, parse_goals
+from torchrl_robotmem.goal_index.shared import SharedIndexes
+from torchrl_robotmem.goal_index.tracking import ColumnTracker, as_tensor_storage, stored_rows
+from torchrl_robotmem.goal_index.views import FilterView
 
 __all__ = ["GoalIndex", "recall"]
 
@@ -38,14 +39,11 @@ GOAL_KEY: NestedKey = ("next", "achieved_goal")
 SUCCESS_KEY: NestedKey = ("next", "is_success")
 
 _ALL_ROWS = FilterKey(False, None, None)
-_SUCCESS_ONLY = FilterKey(True, None, None)
 
-EnvSpec = str | int | Sequence[str | int] | None
-RunSpec = int | Sequence[int] | None
+FilterArg = RowFilter | Mapping[str, Any] | None
 
-
-def _key_str(key: NestedKey) -> str:
-    return repr(key) if isinstance(key, tuple) else repr(str(key))
+# (goal_key, success_key, metric key, env_names) -> the GoalIndex of each storage
+_SHARED = SharedIndexes()
 
 
 class GoalIndex:
@@ -70,7 +68,7 @@ class GoalIndex:
             as a success when its value is ``> 0.5``). Defaults to
             ``("next", "is_success")``.
         metric (str, GoalMetric or callable): ``"euclidean"`` (default) or
-            ``"pose"`` / ``"hand"``, see :mod:`torchrl_robotmem.recall.metrics`.
+            ``"pose"`` / ``"hand"``, see :mod:`torchrl_robotmem.goal_index.metrics`.
         metric_kwargs (dict, optional): keyword arguments of a named metric
             (e.g. ``{"rotation_weight": 0.5}``).
         env_names (sequence of str, optional): names of the integer codes of
@@ -91,7 +89,7 @@ class GoalIndex:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        >>> from torchrl_robotmem.recall import GoalIndex
+        >>> from torchrl_robotmem.goal_index import GoalIndex
         >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000))
         >>> _ = rb.extend(TensorDict({
         ...     "observation": torch.randn(100, 25),
@@ -189,21 +187,17 @@ class GoalIndex:
         """
         st = as_tensor_storage(storage_or_rb)
         metric_obj = get_metric(metric, **(metric_kwargs or {}))
-        sid = id(st)
-        entry = _SHARED.get(sid)
-        if entry is None or entry[0]() is not st:
-            entry = _SHARED[sid] = (weakref.ref(st), {})
-            weakref.finalize(st, _drop_shared, sid, entry[0])
         key = (goal_key, success_key, metric_obj.key, tuple(env_names) if env_names is not None else None)
-        index = entry[1].get(key)
-        if index is None:
+
+        def build() -> GoalIndex:
             index = cls.__new__(cls)
             index._init(st, True, goal_key=goal_key, success_key=success_key, metric=metric_obj,
                         metric_kwargs=None, env_names=env_names, env_key="env", run_key="run",
                         episode_key="episode", backend="auto", tail_size=4096, rebuild_fraction=0.05,
                         max_cached_filters=8)
-            entry[1][key] = index
-        return index
+            return index
+
+        return _SHARED.get(st, key, build)
 
     # -- properties -----------------------------------------------------------
     @property
@@ -253,20 +247,21 @@ class GoalIndex:
         }
 
     # -- queries ----------------------------------------------------------------
-    def refresh(self, filter: RowFilter | None = None, *, success_only: bool = False, env: EnvSpec = None,
-                run: RunSpec = None) -> GoalIndex:
-        """Brings the view of this filter up to date now (queries do it lazily)."""
-        key = self._resolve(filter, success_only, env, run)
+    def refresh(self, filter: FilterArg = None, **filter_keywords) -> GoalIndex:
+        """Brings the view of this filter (``filter=`` or its keywords) up to date now (queries do it lazily)."""
+        key = self._filter_key(RowFilter.coerce(filter, **filter_keywords))
         with self._lock:
             self._sync()
             if self._tracker.goal_shape is not None:
                 self._view(key).sync()
         return self
 
-    def member_rows(self, filter: RowFilter | None = None, *, success_only: bool = False, env: EnvSpec = None,
-                    run: RunSpec = None) -> torch.Tensor:
-        """Storage rows passing the filter (int64, sorted; non-finite goals excluded), cached until they change."""
-        key = self._resolve(filter, success_only, env, run)
+    def member_rows(self, filter: FilterArg = None, **filter_keywords) -> torch.Tensor:
+        """Storage rows passing the filter (int64, sorted; non-finite goals excluded), cached until they change.
+
+        Only ``success_only`` / ``env`` / ``run`` decide membership.
+        """
+        key = self._filter_key(RowFilter.coerce(filter, **filter_keywords))
         with self._lock:
             self._sync()
             if self._tracker.goal_shape is None or self._tracker.n == 0:
@@ -278,12 +273,8 @@ class GoalIndex:
         goal,
         k: int = 5,
         *,
-        filter: RowFilter | None = None,
-        success_only: bool = False,
-        env: EnvSpec = None,
-        run: RunSpec = None,
-        max_distance: float | None = None,
-        one_per_episode: bool = False,
+        filter: FilterArg = None,
+        **filter_keywords,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The k nearest stored goals: ``(distance, index, mask)``.
 
@@ -294,15 +285,14 @@ class GoalIndex:
                 search itself to the rows that pass the filter.
 
         Keyword Args:
-            filter (RowFilter, optional): the filters as one value (instead of
-                ``success_only`` / ``env`` / ``run``).
-            success_only (bool): only rows whose ``success_key`` is ``> 0.5``.
-            env: env name(s) or integer code(s) to keep.
-            run: run id(s) to keep.
-            max_distance (float, optional): drop matches farther than this.
-            one_per_episode (bool): the k results come from k different
-                episodes (the ``episode_key`` column): the nearest row of each
-                of the k nearest episodes. Defaults to ``False``.
+            filter (RowFilter or mapping, optional): which rows may match, as
+                one value (see :class:`~torchrl_robotmem.goal_index.RowFilter`).
+            **filter_keywords: the same as keywords instead: ``success_only``
+                (rows whose ``success_key`` is ``> 0.5``), ``env`` (names or
+                codes), ``run``, ``max_distance`` (drop farther matches) and
+                ``one_per_episode`` (the k results come from k different
+                episodes of the ``episode_key`` column: the nearest row of
+                each of the k nearest episodes).
 
         Returns:
             ``distance`` (float32), ``index`` (int64 storage row) and ``mask``
@@ -314,14 +304,12 @@ class GoalIndex:
             ``index=-1``; nothing is searched or allocated beyond ``w`` and the
             rows that pass the filter.
         """
-        k = _check_k(k)
-        max_d = _check_max_distance(max_distance)
-        key = self._resolve(filter, success_only, env, run)
-        if not isinstance(one_per_episode, (bool, np.bool_)):
-            raise ValueError(f"one_per_episode must be a bool, got {one_per_episode!r}.")
+        k = check_k(k)
+        flt = RowFilter.coerce(filter, **filter_keywords)
+        key = self._filter_key(flt)
         with self._lock:
             self._sync()
-            q, batched = self._parse_goal(goal)
+            q, batched = parse_goals(goal, self._tracker.goal_dim, self.goal_key)
             Q = q.shape[0]
             # k is clamped to the rows that can exist (the width of the result, fixed for a
             # given k and storage: callers size specs on it) and to the rows passing the
@@ -329,13 +317,15 @@ class GoalIndex:
             width = min(k, int(self.storage.max_size))
             kk = 0
             if width and Q and self._tracker.goal_shape is not None and self._tracker.n:
-                if one_per_episode:
+                if flt.one_per_episode:
                     self._tracker.track(self.episode_key, "one_per_episode")
                 view = self._view(key)
                 view.sync()
                 kk = min(width, view.size)
             if kk:
-                d, p = self._search_episodes(view, q, kk, max_d) if one_per_episode else view.search(q, kk, max_d)
+                max_d = flt.distance_limit
+                d, p = (view.search_episodes(q, kk, max_d, self.episode_key) if flt.one_per_episode
+                        else view.search(q, kk, max_d))
                 if kk < width:
                     d = np.pad(d, ((0, 0), (0, width - kk)), constant_values=np.inf)
                     p = np.pad(p, ((0, 0), (0, width - kk)), constant_values=-1)
@@ -351,12 +341,8 @@ class GoalIndex:
         goal,
         k: int = 5,
         *,
-        filter: RowFilter | None = None,
-        success_only: bool = False,
-        env: EnvSpec = None,
-        run: RunSpec = None,
-        max_distance: float | None = None,
-        one_per_episode: bool = False,
+        filter: FilterArg = None,
+        **filter_keywords,
     ) -> TensorDictBase:
         """The k stored transitions whose goals are nearest to ``goal``, with their context.
 
@@ -366,8 +352,7 @@ class GoalIndex:
         plus ``distance`` (float32), ``mask`` (bool) and ``index`` (int64
         storage row). Masked entries hold zeros.
         """
-        dist, index, mask = self.search(goal, k, filter=filter, success_only=success_only, env=env, run=run,
-                                        max_distance=max_distance, one_per_episode=one_per_episode)
+        dist, index, mask = self.search(goal, k, filter=filter, **filter_keywords)
         out = stored_rows(self.storage, index)
         if out is None:
             out = TensorDict({}, batch_size=index.shape)
@@ -401,10 +386,7 @@ class GoalIndex:
     def _sync(self) -> None:
         self._tracker.sync(self.metric.check_goal_dim)
 
-    def _resolve(self, filter, success_only, env, run) -> FilterKey:
-        if filter is None and env is None and run is None and type(success_only) is bool:
-            return _SUCCESS_ONLY if success_only else _ALL_ROWS  # the common case, without a RowFilter
-        flt = RowFilter.of(filter, success_only=success_only, env=env, run=run)
+    def _filter_key(self, flt: RowFilter) -> FilterKey:
         return flt.resolve(self.env_names if flt.env is not None else None)
 
     def _view(self, key: FilterKey) -> FilterView:
@@ -426,100 +408,6 @@ class GoalIndex:
             self._dropped_builds += self._views.popitem(last=False)[1].builds
         return view
 
-    def _search_episodes(self, view: FilterView, q: np.ndarray, k: int, max_d: float):
-        """Exact top-k over episodes: the nearest row of each of the k nearest episodes.
-
-        The top-m rows, searched exactly, hold the nearest row of every
-        episode that has one among them, in order; once they hold k distinct
-        episodes (or every row within reach), no other episode can come
-        closer. m grows until that holds; it stays below the rows of the k
-        largest episodes.
-        """
-        view.sync()
-        episodes = self._tracker.column(self.episode_key).reshape(-1)
-        size = view.size
-        Q = q.shape[0]
-        out_d = np.full((Q, k), np.inf)
-        out_p = np.full((Q, k), -1, dtype=np.int64)
-        todo = np.arange(Q)
-        m = min(max(8 * k, 64), max(size, k))
-        while todo.size:
-            d, p = view.search(q[todo], m, max_d)
-            valid = p >= 0
-            ep = np.where(valid, episodes[np.maximum(p, 0)], 0)
-            order = np.argsort(ep, axis=1, kind="stable")  # stable: the nearest row of an episode first
-            sorted_ep = np.take_along_axis(ep, order, 1)
-            first_sorted = np.ones_like(valid)
-            first_sorted[:, 1:] = sorted_ep[:, 1:] != sorted_ep[:, :-1]
-            first = np.empty_like(valid)
-            np.put_along_axis(first, order, first_sorted, 1)
-            first &= valid
-            found = first.sum(1)
-            done = (found >= k) | ~valid[:, -1] | (m >= size)
-            if done.any():
-                sel = first[done] & (np.cumsum(first[done], 1) <= k)
-                pick = np.argsort(~sel, axis=1, kind="stable")[:, :k]
-                keep = np.take_along_axis(sel, pick, 1)
-                if pick.shape[1] < k:
-                    pad = k - pick.shape[1]
-                    pick = np.pad(pick, ((0, 0), (0, pad)))
-                    keep = np.pad(keep, ((0, 0), (0, pad)))
-                out_d[todo[done]] = np.where(keep, np.take_along_axis(d[done], pick, 1), np.inf)
-                out_p[todo[done]] = np.where(keep, np.take_along_axis(p[done], pick, 1), -1)
-            todo = todo[~done]
-            m = min(4 * m, max(size, k))
-        return out_d, out_p
-
-    def _parse_goal(self, goal) -> tuple[np.ndarray, bool]:
-        if isinstance(goal, torch.Tensor):
-            q = goal.detach()
-            q = (q if q.device.type == "cpu" else q.cpu()).double().numpy()
-        else:
-            try:
-                q = np.asarray(goal, dtype=np.float64)
-            except (TypeError, ValueError) as err:
-                raise ValueError(f"goal must be numeric, got {type(goal).__name__}: {err}") from None
-        if q.ndim not in (1, 2):
-            raise ValueError(
-                f"goal must have shape [goal_dim] or [B, goal_dim], got {tuple(q.shape)}."
-            )
-        batched = q.ndim == 2
-        q = np.ascontiguousarray(q.reshape(-1, q.shape[-1]))
-        dim = self._tracker.goal_dim
-        if dim is not None and q.shape[1] != dim:
-            raise ValueError(
-                f"goal has dimension {q.shape[1]} but the stored goals "
-                f"{_key_str(self.goal_key)} have dimension {dim}."
-            )
-        if not np.isfinite(q).all():
-            raise ValueError("goal contains NaN or infinite values.")
-        return q, batched
-
-
-def _check_k(k) -> int:
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-        raise ValueError(f"k must be a positive integer, got {k!r}.")
-    return int(k)
-
-
-def _check_max_distance(max_distance) -> float:
-    if max_distance is None:
-        return np.inf
-    max_distance = float(max_distance)
-    if math.isnan(max_distance) or max_distance < 0:
-        raise ValueError(f"max_distance must be >= 0, got {max_distance}.")
-    return max_distance
-
-
-# storage id -> (weak ref to the storage, {(goal_key, success_key, metric key, env_names): GoalIndex})
-_SHARED: dict[int, tuple[weakref.ref, dict]] = {}
-
-
-def _drop_shared(sid: int, ref: weakref.ref) -> None:
-    entry = _SHARED.get(sid)
-    if entry is not None and entry[0] is ref:
-        del _SHARED[sid]
-
 
 def recall(
     storage_or_rb,
@@ -531,24 +419,22 @@ def recall(
     metric: str | GoalMetric | Any = "euclidean",
     metric_kwargs: dict | None = None,
     env_names: Sequence[str] | None = None,
-    filter: RowFilter | None = None,
-    success_only: bool = False,
-    env: EnvSpec = None,
-    run: RunSpec = None,
-    max_distance: float | None = None,
-    one_per_episode: bool = False,
+    filter: FilterArg = None,
+    **filter_keywords,
 ) -> TensorDictBase:
     """Recalls the k stored transitions whose goals are nearest to ``goal``.
 
     Uses the storage's shared index (:meth:`GoalIndex.for_storage`), built on
     first use and dropped with the storage. Arguments and output are those of
-    :meth:`GoalIndex.recall`.
+    :meth:`GoalIndex.recall`: the filter is ``filter=RowFilter(...)`` or its
+    keywords (``success_only``, ``env``, ``run``, ``max_distance``,
+    ``one_per_episode``).
 
     Example:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        >>> from torchrl_robotmem.recall import recall
+        >>> from torchrl_robotmem.goal_index import recall
         >>> rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
         >>> _ = rb.extend(TensorDict({
         ...     "action": torch.randn(10, 4),
@@ -566,5 +452,4 @@ def recall(
         storage_or_rb, goal_key=goal_key, success_key=success_key, metric=metric,
         metric_kwargs=metric_kwargs, env_names=env_names,
     )
-    return index.recall(goal, k, filter=filter, success_only=success_only, env=env, run=run,
-                        max_distance=max_distance, one_per_episode=one_per_episode)
+    return index.recall(goal, k, filter=filter, **filter_keywords)

@@ -26,7 +26,7 @@ Every metric maps ``[Q, d] x [N, d] -> [Q, N]`` (:meth:`GoalMetric.pairwise`)
 and broadcasts elementwise (:meth:`GoalMetric.distance`), in torch. The
 built-in metrics also expose a Euclidean *embedding* (:meth:`GoalMetric.embed`)
 whose distances are a lower bound of the metric;
-:class:`~torchrl_robotmem.recall.GoalIndex` uses it to run exact searches
+:class:`~torchrl_robotmem.goal_index.GoalIndex` uses it to run exact searches
 through a KD-tree.
 """
 from __future__ import annotations
@@ -105,7 +105,7 @@ class EuclideanMetric(GoalMetric):
 
     Example:
         >>> import torch
-        >>> from torchrl_robotmem.recall.metrics import EuclideanMetric
+        >>> from torchrl_robotmem.goal_index.metrics import EuclideanMetric
         >>> EuclideanMetric().pairwise(torch.zeros(1, 3), torch.tensor([[3.0, 4.0, 0.0]]))
         tensor([[5.]])
     """
@@ -149,7 +149,7 @@ class PoseMetric(GoalMetric):
 
     Example:
         >>> import torch
-        >>> from torchrl_robotmem.recall.metrics import PoseMetric
+        >>> from torchrl_robotmem.goal_index.metrics import PoseMetric
         >>> q = torch.tensor([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]])
         >>> minus_q = torch.tensor([[0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0]])
         >>> PoseMetric().pairwise(q, minus_q)
@@ -261,7 +261,7 @@ def get_metric(name_or_callable: str | GoalMetric | Callable = "euclidean", **kw
             (e.g. ``rotation_weight=0.5`` for ``"pose"``).
 
     Example:
-        >>> from torchrl_robotmem.recall.metrics import get_metric
+        >>> from torchrl_robotmem.goal_index.metrics import get_metric
         >>> get_metric("hand", rotation_weight=0.5)
         PoseMetric(rotation_weight=0.5)
     """

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from torchrl_robotmem.recall.metrics import GoalMetric
+from torchrl_robotmem.goal_index.metrics import GoalMetric
 
 __all__ = ["BruteSegment", "Segment", "TreeSegment", "build_segment", "search_segment"]
 

@@ -141,7 +141,7 @@ class ColumnTracker:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from torchrl.data import LazyTensorStorage
-        >>> from torchrl_robotmem.recall.tracking import ColumnTracker
+        >>> from torchrl_robotmem.goal_index.tracking import ColumnTracker
         >>> st = LazyTensorStorage(10)
         >>> st.set(range(4), TensorDict({"g": torch.rand(4, 3)}, [4]))
         >>> tracker = ColumnTracker(st, "g")

@@ -4,7 +4,7 @@ Each filter combination of an index (none, ``success_only``, an env subset, a
 run subset, ...) gets a :class:`FilterView` whose rows are held by up to three
 segments: a large ``main`` one, a ``mid`` one (< ``rebuild_fraction`` of main)
 and a small ``live`` one (<= ``tail_size`` rows, rebuilt at each change). A
-changed row (from the :class:`~torchrl_robotmem.recall.tracking.ColumnTracker`
+changed row (from the :class:`~torchrl_robotmem.goal_index.tracking.ColumnTracker`
 log) is dropped from the segment that held it (its stale entry is skipped at
 query time) and re-enters through ``live``; ``live`` overflows into ``mid``;
 when ``mid`` plus the stale rows of ``main`` outgrow ``rebuild_fraction`` of
@@ -21,9 +21,9 @@ import numpy as np
 import torch
 from tensordict.utils import NestedKey
 
-from torchrl_robotmem.recall.filters import FilterKey
-from torchrl_robotmem.recall.metrics import GoalMetric
-from torchrl_robotmem.recall.segments import (
+from torchrl_robotmem.goal_index.filters import FilterKey
+from torchrl_robotmem.goal_index.metrics import GoalMetric
+from torchrl_robotmem.goal_index.segments import (
     LEVEL_LIVE,
     LEVEL_MAIN,
     LEVEL_MID,
@@ -31,7 +31,7 @@ from torchrl_robotmem.recall.segments import (
     build_segment,
     search_segment,
 )
-from torchrl_robotmem.recall.tracking import ColumnTracker
+from torchrl_robotmem.goal_index.tracking import ColumnTracker
 
 __all__ = ["FilterView"]
 
@@ -48,7 +48,7 @@ class FilterView:
         columns (dict): ``{"success": key, "env": key, "run": key}``, the
             stored columns the filter reads.
         backend (str): ``"auto"``, ``"kdtree"`` or ``"brute"``.
-        tail_size (int), rebuild_fraction (float): see :class:`~torchrl_robotmem.recall.GoalIndex`.
+        tail_size (int), rebuild_fraction (float): see :class:`~torchrl_robotmem.goal_index.GoalIndex`.
     """
 
     def __init__(self, key: FilterKey, tracker: ColumnTracker, metric: GoalMetric,
@@ -200,3 +200,48 @@ class FilterView:
             d = np.where(far, np.inf, d)
             p = np.where(far, -1, p)
         return d, p
+
+    def search_episodes(self, q: np.ndarray, k: int, max_d: float,
+                        episode_key: NestedKey) -> tuple[np.ndarray, np.ndarray]:
+        """Exact top-k over episodes: the nearest row of each of the k nearest episodes.
+
+        The top-m rows, searched exactly, hold the nearest row of every
+        episode that has one among them, in order; once they hold k distinct
+        episodes (or every row within reach), no other episode can come
+        closer. m grows until that holds; it stays below the rows of the k
+        largest episodes. ``episode_key`` must be tracked.
+        """
+        self.sync()
+        episodes = self.tracker.column(episode_key).reshape(-1)
+        size = self.size
+        Q = q.shape[0]
+        out_d = np.full((Q, k), np.inf)
+        out_p = np.full((Q, k), -1, dtype=np.int64)
+        todo = np.arange(Q)
+        m = min(max(8 * k, 64), max(size, k))
+        while todo.size:
+            d, p = self.search(q[todo], m, max_d)
+            valid = p >= 0
+            ep = np.where(valid, episodes[np.maximum(p, 0)], 0)
+            order = np.argsort(ep, axis=1, kind="stable")  # stable: the nearest row of an episode first
+            sorted_ep = np.take_along_axis(ep, order, 1)
+            first_sorted = np.ones_like(valid)
+            first_sorted[:, 1:] = sorted_ep[:, 1:] != sorted_ep[:, :-1]
+            first = np.empty_like(valid)
+            np.put_along_axis(first, order, first_sorted, 1)
+            first &= valid
+            found = first.sum(1)
+            done = (found >= k) | ~valid[:, -1] | (m >= size)
+            if done.any():
+                sel = first[done] & (np.cumsum(first[done], 1) <= k)
+                pick = np.argsort(~sel, axis=1, kind="stable")[:, :k]
+                keep = np.take_along_axis(sel, pick, 1)
+                if pick.shape[1] < k:
+                    pad = k - pick.shape[1]
+                    pick = np.pad(pick, ((0, 0), (0, pad)))
+                    keep = np.pad(keep, ((0, 0), (0, pad)))
+                out_d[todo[done]] = np.where(keep, np.take_along_axis(d[done], pick, 1), np.inf)
+                out_p[todo[done]] = np.where(keep, np.take_along_axis(p[done], pick, 1), -1)
+            todo = todo[~done]
+            m = min(4 * m, max(size, k))
+        return out_d, out_p
