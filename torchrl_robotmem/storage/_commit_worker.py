@@ -357,7 +357,7 @@ class CommitWorker:
         """Whether the worker process has exited (and can write nothing more)."""
         return self.proc.poll() is not None
 
-    def _discard(self) -> None:
+    def discard(self) -> None:
         """Kills a worker whose channel is broken or silent; the next ``get()`` starts a new one.
 
         ``SIGKILL`` also ends a stopped (``SIGSTOP``) process. Waits up to 5 s
@@ -388,7 +388,7 @@ class CommitWorker:
             if not self.broken:
                 self.sock.settimeout(None)
         if frame is None or not frame[0].get("ready"):
-            self._discard()
+            self.discard()
             raise self._gone("failed to start")
         self._ready = True
 
@@ -407,7 +407,7 @@ class CommitWorker:
             if not self._ready:
                 self._await_ready()
             if self.proc.poll() is not None:
-                self._discard()
+                self.discard()
                 raise self._gone("has exited")
             timeout = reply_deadline(nbytes)
             deadline = time.monotonic() + timeout
@@ -418,20 +418,20 @@ class CommitWorker:
                 self.sock.settimeout(max(0.01, deadline - time.monotonic()))
                 frame = read_frame(self.sock)
             except TimeoutError:
-                self._discard()
+                self.discard()
                 raise self._gone(f"did not answer within {timeout:.1f} s (stopped, or its disk stalled); "
                                  f"it was killed") from None
             except OSError as err:
-                self._discard()
+                self.discard()
                 raise self._gone(f"is gone ({type(err).__name__}: {err})") from None
             except BaseException:  # e.g. KeyboardInterrupt mid-frame: the stream cannot be trusted
-                self._discard()
+                self.discard()
                 raise
             finally:
                 if not self.broken:
                     self.sock.settimeout(None)
             if frame is None:
-                self._discard()
+                self.discard()
                 raise self._gone("is gone")
         reply = frame[0]
         if not reply.get("ok"):

@@ -1,4 +1,4 @@
-"""The commit engine: dirty chunks, the background writer thread, the redo journal, ``flush``.
+"""The commit engine: dirty chunks, the background writer thread, ``flush``.
 
 Protocol (see ``docs/storage.md``, "Commit protocol and crash safety"):
 
@@ -7,14 +7,14 @@ Protocol (see ``docs/storage.md``, "Commit protocol and crash safety"):
 2. then the metadata, in ONE atomic ``zarr.json`` replacement
    (``Group.update_attributes``): rows below the committed ``len`` are visible;
 3. chunks that overwrite committed rows (a ring wrapping around, ``rb[i] = x``)
-   go through a redo journal: new contents to ``_journal/``, the ``journal``
-   record committed, chunks written in place, record cleared. A reopen replays
-   a pending journal first.
+   go through the redo journal (:mod:`.journal`). A reopen replays a pending
+   journal first.
 
-The engine reads rows through its owner (the storage): ``owner._copy_chunk(c)``
-(a snapshot taken under the lock), ``owner._chunk_arrays(snapshot)`` (outside it),
-``owner._meta_snapshot()``, ``owner._len_along_dim0``, ``owner._max_dim0`` and
-``owner._schema``. It writes nothing but Zarr.
+The engine reads rows from the RAM mirror it is given
+(:class:`~torchrl_robotmem.storage.mirror.RamMirror`): ``mirror.copy_chunk(c)``
+(a snapshot taken under the lock), ``mirror.chunk_arrays(snapshot)`` (outside
+it), its shapes and schema; and the commit record from the ``record`` callable
+it is given (the storage's writer position and tags). It writes nothing but Zarr.
 
 Nothing the process holds is lost to a failed commit: the chunks of a commit
 that fails are marked dirty again (the RAM mirror still holds their rows), the
@@ -35,10 +35,13 @@ from typing import Any
 
 import numpy as np
 import torch
+import zarr
 from zarr.core.sync import sync as zarr_sync
 
 from . import _backend
 from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
+from .format import writing_config
+from .journal import journal_chunks, replay_journal, write_journal
 
 __all__ = ["CommitEngine"]
 
@@ -51,8 +54,12 @@ class CommitEngine:
     """Makes the rows of a storage durable, in the background or synchronously.
 
     Args:
-        owner: the storage whose rows are committed (see the module docstring).
-        group: its Zarr group.
+        mirror (RamMirror): the rows to commit (see the module docstring).
+        group: the store's Zarr group.
+
+    Keyword Args:
+        record: a callable returning the commit record that makes the rows
+            written so far visible (``len``, ``cursor``, ``write_count``, tags...).
         commit_interval (float): seconds after which written rows are committed
             even if their chunk is not full.
         background (bool): commit from a background thread (``False``: every
@@ -63,9 +70,11 @@ class CommitEngine:
             chunks instead of this process; ``None`` writes them here.
     """
 
-    def __init__(self, owner: Any, group: Any, *, commit_interval: float, background: bool, name: str,
-                 worker_path: str | None = None) -> None:
-        self.owner = owner
+    def __init__(self, mirror: Any, group: Any, *, record: Any, commit_interval: float, background: bool,
+                 name: str, worker_path: str | None = None) -> None:
+        self.mirror = mirror
+        self.record = record
+        self.writer_lock: Any = None  # the store's writer lock: the worker gets a copy of its descriptor
         self.group = group
         self.commit_interval = float(commit_interval)
         self.background = bool(background)
@@ -153,8 +162,7 @@ class CommitEngine:
         Another handle, or this process before the switch, may have written the
         store since the worker last saw it: it reopens the group and its arrays.
         """
-        lock = getattr(self.owner, "_lock_file", None)
-        fd = getattr(lock, "_fd", None)
+        fd = getattr(self.writer_lock, "_fd", None)
         self._worker.request({"op": "open", "path": self.worker_path}, fds=[fd] if fd is not None else [])
         self._worker_synced = True
 
@@ -189,7 +197,7 @@ class CommitEngine:
             return  # done already (by another thread's request)
         worker = self._worker
         if worker is not None and not worker.gone():
-            worker._discard()
+            worker.discard()
             if not worker.gone():
                 raise CommitWorkerError(
                     f"the commit worker process (pid {worker.proc.pid}) did not exit after SIGKILL "
@@ -209,15 +217,11 @@ class CommitEngine:
         self._resync_from_disk()
 
     def _resync_from_disk(self) -> None:
-        import zarr
-
-        from .integrity import writing_config
-
         group = zarr.open_group(self.group.store, mode="r+", zarr_format=3)
         attrs = group.attrs.asdict()
         if attrs.get("journal"):
             with writing_config():
-                attrs = self.replay_journal(group, attrs["journal"])
+                attrs = replay_journal(group, attrs["journal"])
         self.group = group
         with self.cv:
             self.committed_len = max(self.committed_len, int(attrs.get("len", 0)))
@@ -261,8 +265,8 @@ class CommitEngine:
         self.thread.start()
 
     def _complete_chunks(self) -> list[int]:
-        owner = self.owner
-        n, size, rows = owner._len_along_dim0, owner._max_dim0, owner._chunk_rows
+        mirror = self.mirror
+        n, size, rows = mirror.filled(), mirror.max_dim0, mirror.chunk_rows
         return [c for c in self.dirty if min((c + 1) * rows, size) <= n]
 
     def _loop(self) -> None:
@@ -303,19 +307,19 @@ class CommitEngine:
         writing in-process and commits everything again; any other failure
         leaves the chunks dirty and is raised to the foreground.
         """
-        owner = self.owner
+        mirror = self.mirror
         with self.cv:
             target = self.flush_req
             # Overwriting committed rows (a wrapping ring) commits everything with
             # its metadata, through the journal: rows on disk never lead the
             # metadata, even by a chunk.
-            committed0 = owner._dim0(self.committed_len)
+            committed0 = mirror.dim0(self.committed_len)
             overwrite = any(lo < committed0 for lo in self.dirty.values())
             everything = everything or overwrite
             chunks = sorted(self.dirty) if everything else sorted(self._complete_chunks())
-            snapshots = {c: owner._copy_chunk(c) for c in chunks}
+            snapshots = {c: mirror.copy_chunk(c) for c in chunks}
             taken = {c: self.dirty.pop(c) for c in chunks}
-            meta = owner._meta_snapshot() if everything else None
+            meta = self.record() if everything else None
             if everything:
                 self.meta_dirty = False
                 self.first_dirty_time = None
@@ -325,7 +329,7 @@ class CommitEngine:
                 via_worker = self._use_worker()
                 if not via_worker:
                     # split into arrays outside the cv lock: the foreground only waited for the memcpy
-                    payload = {c: owner._chunk_arrays(snap) for c, snap in snapshots.items()}
+                    payload = {c: mirror.chunk_arrays(snap) for c, snap in snapshots.items()}
                     if overwrite:
                         self._write_journal(payload, meta)
                     self._write_chunks(payload)
@@ -382,26 +386,26 @@ class CommitEngine:
 
     def _commit_in_worker(self, snapshots: dict, meta: dict | None, overwrite: bool) -> None:
         """Sends the packed snapshots to the commit worker, which splits and writes them."""
-        owner = self.owner
+        mirror = self.mirror
         layout = next(iter(snapshots.values()))[1] if snapshots else None  # None: a metadata-only commit
         header = {
             "op": "commit",
             "path": self.worker_path,
-            "chunk_rows": owner._chunk_rows,
+            "chunk_rows": mirror.chunk_rows,
             "row_bytes": layout.row_bytes if layout is not None else 0,
-            "inner": list(owner._inner_shape or ()),
+            "inner": list(mirror.inner_shape or ()),
             "fields": [[path, off, nbytes, _backend.numpy_dtype(dtype).str, list(shape)]
                        for path, off, nbytes, dtype, shape in (layout.fields if layout is not None else ())
-                       if path in owner._schema],
+                       if path in mirror.schema],
             "chunks": [[c, int(snap[0].shape[0])] for c, snap in snapshots.items()],
             "overwrite": overwrite,
             "meta": meta,
         }
         if overwrite:
             header["journal_arrays"] = [
-                [path, [owner._max_dim0, *owner._inner_shape, *spec["shape"]],
+                [path, [mirror.max_dim0, *mirror.inner_shape, *spec["shape"]],
                  _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).str]
-                for path, spec in owner._schema.items()
+                for path, spec in mirror.schema.items()
             ]
         if not self._worker_synced:
             self._worker_open()
@@ -415,7 +419,7 @@ class CommitEngine:
 
     def _write_chunks(self, payload: dict[int, dict[str, np.ndarray]], prefix: str = "") -> None:
         """Writes chunks of every array in one event-loop round trip (about 1.4x a loop of writes)."""
-        rows = self.owner._chunk_rows
+        rows = self.mirror.chunk_rows
         writes = []
         for c, arrays in payload.items():
             lo = c * rows
@@ -431,48 +435,14 @@ class CommitEngine:
     # -- journal ------------------------------------------------------------------
 
     def _write_journal(self, payload: dict[int, dict[str, np.ndarray]], meta: dict) -> None:
-        """Redo log for chunks that overwrite committed rows (ring wrap-around).
+        """Redo log for chunks that overwrite committed rows (ring wrap-around): see :mod:`.journal`."""
+        m = self.mirror
+        write_journal(self.group, self.arrays, payload, meta, schema=m.schema, size=m.max_dim0,
+                      inner_shape=m.inner_shape, chunk_rows=m.chunk_rows, write_chunks=self._write_chunks)
 
-        Chunk files are replaced atomically one array at a time; without this a
-        crash between two arrays would leave rows whose columns disagree.
-        """
-        owner = self.owner
-        size, rows = owner._max_dim0, owner._chunk_rows
-        for path, spec in owner._schema.items():
-            jpath = f"_journal/{path}"
-            shape = (size, *owner._inner_shape, *spec["shape"])
-            if jpath not in self.arrays or self.arrays[jpath].shape != shape:
-                # created once, as large as the store: each chunk goes to its own offset
-                self.arrays[jpath] = self.group.create_array(
-                    jpath,
-                    shape=shape,
-                    chunks=(rows, *shape[1:]),
-                    dtype=_backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])),
-                    fill_value=0,
-                    overwrite=True,
-                )
-        self._write_chunks(payload, prefix="_journal/")
-        # the journal is complete once this record (with the state it leads to) is committed
-        self.group.update_attributes({"journal": {"chunks": sorted(payload), "meta": meta}})
-
-    @staticmethod
-    def journal_chunks(group: Any, journal: dict):
-        """Yields ``(path, row_slice, values)`` for every journalled chunk."""
-        rows = int(group.attrs["chunk_rows"])
-        for path in group.attrs["schema"]:
-            src = group[f"_journal/{path}"]
-            size = group[path].shape[0]
-            for c in journal["chunks"]:
-                lo, hi = c * rows, min(c * rows + rows, size)
-                yield path, slice(lo, hi), src[lo:hi]
-
-    @classmethod
-    def replay_journal(cls, group: Any, journal: dict) -> dict:
-        """Redoes an interrupted journalled commit; returns the attributes it led to."""
-        for path, rows, values in cls.journal_chunks(group, journal):
-            group[path][rows] = values
-        group.update_attributes({**journal["meta"], "journal": None})
-        return group.attrs.asdict()
+    # kept until integrity's repair calls journal.replay_journal (see docs/storage.md)
+    journal_chunks = staticmethod(journal_chunks)
+    replay_journal = staticmethod(replay_journal)
 
     # -- durability ---------------------------------------------------------------
 
@@ -510,15 +480,16 @@ class CommitEngine:
 
     def not_durable(self) -> str:
         """Which rows the store would lose now: ``"N rows (write numbers A to B)"`` and in-place changes."""
-        owner = self.owner
+        mirror = self.mirror
         with self.cv:
-            written = int(owner._meta_snapshot()["write_count"])
+            written = int(self.record()["write_count"])
             committed = self.committed_write_count
-            in_place = sorted(c for c, lo in self.dirty.items() if lo < owner._dim0(self.committed_len))
-            rows = owner._chunk_rows or 0
-        first = max(committed, written - owner.max_size)  # older writes were overwritten in RAM by the ring
+            in_place = sorted(c for c, lo in self.dirty.items() if lo < mirror.dim0(self.committed_len))
+            rows = mirror.chunk_rows or 0
+        size = mirror.max_size
+        first = max(committed, written - size)  # older writes were overwritten in RAM by the ring
         if written > first:
-            where = (f"at storage index write number % {owner.max_size}" if written > owner.max_size
+            where = (f"at storage index write number % {size}" if written > size
                      else "the same storage indices")
             return f"{written - first} rows (write numbers {first} to {written - 1}, {where})"
         if in_place:

@@ -23,8 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 import torchrl
-from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase, is_tensor_collection
-from tensordict.base import _is_leaf_nontensor
+from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
@@ -32,17 +31,17 @@ from . import _backend, integrity, lifecycle, writer_sync
 from ._backend import FORMAT_MARKER, FORMAT_VERSION
 from .checkpointer import ZarrCheckpointer
 from .commit import CommitEngine
-from .schema import DataKind, PackedLayout, check_against, env_names_of, spec_of, split_constants, with_constants
-from .tags import TAG_KEYS, UNKNOWN_ENV, EpisodeTagger, check_user_keys, check_user_tag, open_episode_ends
+from .format import writing_config
+from .journal import replay_journal
+from .mirror import RamMirror
+from .planner import DROPPED_KEYS, StoreView, WritePlan, check_constants, cursor_rows, plan_write, validate
+from .schema import DataKind, PackedLayout, spec_of, split_constants, with_constants
+from .tags import TAG_KEYS, UNKNOWN_ENV, EpisodeTagger, open_episode_ends
 
 __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
 
 _DONE_KEY = ("next", "done")
 _TRUNCATED_KEY = ("next", "truncated")
-_TRAJ_KEY = ("collector", "traj_ids")
-# Written into the caller's TensorDict by TorchRL's TensorDictRoundRobinWriter;
-# it equals the row position, so it is not stored (sample() adds it back).
-_DROPPED_KEYS = ("index",)
 
 # The writable handle of each store opened for writing in this process. A new
 # writable handle on the same store takes the writer over from the old one.
@@ -251,30 +250,32 @@ class ZarrStorage(LazyTensorStorage):
                                      decode=not self.read_only and (bool(attrs.get("journal")) or grows))
         stored_max = int(attrs["max_size"])
         super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
+        self._mirror = RamMirror(stored_max, ndim=self.ndim, device=self.device, length=self.__len__)
         self._engine = CommitEngine(
-            self, self._group, commit_interval=commit_interval, background=background, name=str(self.path),
+            self._mirror, self._group, record=self._meta_snapshot, commit_interval=commit_interval,
+            background=background, name=str(self.path),
             worker_path=str(self._local_dir) if self._use_worker(background) else None,
         )
+        self._engine.writer_lock = self._lock_file
         self._sync_attrs(attrs)
         # This session's state.
         self._run: int | None = None  # allocated at the first write
         self._env_code = UNKNOWN_ENV
         self._restored_writers: weakref.WeakSet = weakref.WeakSet()
         self._warned_items = False
-        self._keep_tags = False
         self._own_writes = 0  # depth of this class's own writes (see _bump_mutation_revision)
         if max_size is not None and int(max_size) != stored_max:
             self._grow(int(max_size))
-        if self._schema is not None:
+        if self._mirror.schema is not None:
             self._load_rows(attrs)
         if env is None and not self.read_only:
             env = attrs.get("env")  # continue tagging with the previous run's env
         if env is not None and not self.read_only:
             self.env = env
         if not self.read_only:
-            self._engine.arrays.update(integrity.writing_handles(self._group, self._schema or ()))
+            self._engine.arrays.update(integrity.writing_handles(self._group, self._mirror.schema or ()))
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
-            if self._schema is not None:
+            if self._mirror.schema is not None:
                 self._close_open_episodes()
                 self.flush()
 
@@ -331,45 +332,18 @@ class ZarrStorage(LazyTensorStorage):
 
     def _sync_attrs(self, attrs: dict) -> None:
         """Persistent bookkeeping, mirrored from the group attributes."""
-        self._chunk_rows = attrs.get("chunk_rows")
-        self._schema: dict[str, dict] | None = attrs.get("schema")
         self._constants: dict[str, Any] = dict(attrs.get("constants") or {})  # non-tensor entries
         self._kind = DataKind.from_json(attrs.get("kind"))
         inner = attrs.get("inner_shape")
-        self._inner_shape: tuple[int, ...] = tuple(inner) if inner is not None else ()
+        self._mirror.inner_shape = tuple(inner) if inner is not None else ()
+        self._mirror.chunk_rows = attrs.get("chunk_rows")
+        self._mirror.configure(attrs.get("schema"))
         self._env_names: list[str] = list(attrs.get("env_names", []))
         self._tagger = EpisodeTagger(int(attrs.get("episode_next", 0)))
         self._runs = int(attrs.get("runs", 0))
         self._write_count = int(attrs.get("write_count", 0))
         self._writer_cursor = int(attrs.get("cursor", 0))
         self._engine.set_committed(attrs)
-        self._index_schema()
-
-    def _index_schema(self) -> None:
-        """``{key: (dtype, row shape)}`` without the tags, for the hot validation path."""
-        self._layout = PackedLayout(self._schema) if self._schema is not None else None
-        if self._schema is None:
-            self._schema_by_key = None
-            return
-        self._schema_by_key = {
-            _backend.path_to_key(p): (_backend.torch_dtype(spec["dtype"]), torch.Size(spec["shape"]))
-            for p, spec in self._schema.items()
-            if p not in TAG_KEYS
-        }
-
-    # -- shapes along the first dimension -------------------------------------------------
-
-    @property
-    def _inner_numel(self) -> int:
-        """Elements per first-dimension row that count in ``len`` (the dims up to ``ndim``)."""
-        return math.prod(self._inner_shape[: self.ndim - 1]) if self.ndim > 1 else 1
-
-    @property
-    def _max_dim0(self) -> int:
-        return -(-self.max_size // self._inner_numel)
-
-    def _dim0(self, n: int) -> int:
-        return -(-int(n) // self._inner_numel)
 
     # -- writer handover within a process -------------------------------------------------
 
@@ -408,7 +382,7 @@ class ZarrStorage(LazyTensorStorage):
             _OPEN_WRITERS[key] = weakref.ref(self)
         if self._local_dir is not None:
             try:
-                self._lock_file = _backend.WriterLock(self._local_dir)
+                self._lock_file = self._engine.writer_lock = _backend.WriterLock(self._local_dir)
             except RuntimeError:
                 return  # another process took it meanwhile: stay a snapshot
         self._retired_by = None
@@ -430,11 +404,11 @@ class ZarrStorage(LazyTensorStorage):
                 f"The store at {self.path!r} has wrapped around its max_size={old}; it cannot "
                 f"grow to {new_max} without reordering rows. Pass max_size={old} (or None)."
             )
-        self.max_size = new_max
-        if self._schema is not None:
-            for path in self._schema:
+        self.max_size = self._mirror.max_size = new_max
+        if self._mirror.schema is not None:
+            for path in self._mirror.schema:
                 arr = self._group[path]
-                arr.resize((self._max_dim0, *arr.shape[1:]))
+                arr.resize((self._mirror.max_dim0, *arr.shape[1:]))
         self._engine.reset_arrays()
         self._engine.update_attrs({"max_size": new_max})
 
@@ -442,39 +416,35 @@ class ZarrStorage(LazyTensorStorage):
         record = attrs
         journal = attrs.get("journal")
         if journal and not self.read_only:
-            with integrity.writing_config():
-                attrs = CommitEngine.replay_journal(self._group, journal)
+            with writing_config():
+                attrs = replay_journal(self._group, journal)
             self._sync_attrs(attrs)
         elif journal:  # a reader applies the pending journal in RAM only
             attrs = {**attrs, **journal["meta"]}
             self._sync_attrs(attrs)
         n = int(attrs.get("len", 0))
-        n0 = self._dim0(n)
+        n0 = self._mirror.dim0(n)
         self._allocate()
-        for path in self._schema:
-            if n0:
-                self._column(path)[:n0] = torch.from_numpy(integrity.read_rows(
-                    self._group[path], path, n0, self._chunk_rows, self.path, self.read_only))
+        self._mirror.load(self._group, n0, store_path=self.path, read_only=self.read_only)
         if journal and self.read_only:
-            for path, rows, values in CommitEngine.journal_chunks(self._group, journal):
-                self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
+            self._mirror.apply_journal(self._group, journal)
         if self.read_only and n0:
-            self._reread_overwritten(record, n0)
+            self._mirror.reread_overwritten(self._store, self._group, record, n0, store_path=self.path)
         if n0:
             # Zarr reads a chunk file that is gone as zeros: one moved away since the open's
             # listing (by `robotmem repair`) is an error here, never zero rows served
             n = self._check_read(attrs if not self.read_only else {**record, "len": min(n, int(record.get("len", 0)))}, n)
-            n0 = self._dim0(n)
+            n0 = self._mirror.dim0(n)
         self.initialized = True
         self._len = n
         last = int(attrs.get("last_cursor", -1))
         if last >= 0:
             self._set_last_cursor(last)
-        if n and "episode" in self._schema:
+        if n and "episode" in self._mirror.schema:
             # Rows past the committed metadata may survive a crash (journal
             # replays): never hand out an id that a stored row already uses.
-            self._tagger.next_id = max(self._tagger.next_id, int(self._views.get("episode")[:n0].max()) + 1)
-            self._runs = max(self._runs, int(self._views.get("run")[:n0].max()) + 1)
+            self._tagger.next_id = max(self._tagger.next_id, int(self._mirror.views.get("episode")[:n0].max()) + 1)
+            self._runs = max(self._runs, int(self._mirror.views.get("run")[:n0].max()) + 1)
         with self._own_write():
             self._bump_mutation_revision()
 
@@ -493,62 +463,16 @@ class ZarrStorage(LazyTensorStorage):
         cut = min(p.rows[0] for p in problems)
         warnings.warn(f"{integrity.IntegrityError(self.path, problems, action='')}\non_damage='warn': reading the "
                       f"{cut} rows before the first missing chunk.", stacklevel=4)
-        return min(n, cut * self._inner_numel)
-
-    def _reread_overwritten(self, record: dict, n0: int) -> None:
-        """Reads again, chunk by chunk, the rows a writer may have overwritten during a reader's load.
-
-        An overwrite (a ring wrapping around, a journalled in-place write)
-        replaces one array's chunk at a time, so a read that overlapped it can
-        return rows whose columns come from two writes. When the commit record
-        changed during the load and an overwrite was possible, each chunk is read
-        until the record is the same before and after (from the journal while
-        one names the chunk): every row is whole, possibly newer than ``len``.
-        """
-        def now() -> dict:
-            return _backend.open_group(self._store, read_only=True).attrs.asdict()
-
-        after = now()
-        wrapped = int(after.get("write_count", 0)) > self.max_size
-        if after == record or not (wrapped or record.get("journal") or after.get("journal")):
-            return
-        rows = self._chunk_rows
-        for lo in range(0, n0, rows):
-            hi = min(lo + rows, n0)
-            for _ in range(1000):
-                before = now()
-                journal = before.get("journal")
-                prefix = "_journal/" if journal and lo // rows in journal["chunks"] else ""
-                values = {path: self._group[prefix + path][lo:hi] for path in self._schema}
-                if now() == before:
-                    break
-            else:
-                raise RuntimeError(f"Could not read rows {lo}..{hi} of {self.path!r}: the writer commits too often.")
-            for path, v in values.items():
-                self._column(path)[lo:hi] = torch.from_numpy(np.ascontiguousarray(v))
+        return min(n, cut * self._mirror.inner_numel)
 
     def _allocate(self) -> None:
         """(Re)builds the packed RAM mirror for the current schema, keeping existing rows."""
-        old = self._views if self.initialized else None
-        self._packed = self._layout.allocate((self._max_dim0, *self._inner_shape), self.device)
-        self._views = self._layout.views(self._packed)
-        self._columns = dict(self._views.items(include_nested=True, leaves_only=True))
+        self._mirror.allocate(keep=self.initialized)
         # what TorchRL sees as the storage: the data as the user wrote it (a TensorDict of
         # views, the tensor column, or the tensorclass / pytree built on the views)
-        self._storage = self._kind.from_tensordict(self._views.exclude(*TAG_KEYS) if self._kind.kind != "tensordict" else self._views)
+        views = self._mirror.views
+        self._storage = self._kind.from_tensordict(views.exclude(*TAG_KEYS) if self._kind.kind != "tensordict" else views)
         self.__dict__.pop("_total_shape_value", None)  # TorchRL caches the storage shape
-        if old is not None:
-            n0 = self._dim0(len(self))
-            for path in self._schema:
-                key = _backend.path_to_key(path)
-                col = old.get(key, None)
-                if col is not None:
-                    self._views.get(key)[:n0] = col[:n0]
-                else:
-                    self._views.get(key)[:n0] = 0
-
-    def _column(self, path: str) -> torch.Tensor:
-        return self._views.get(_backend.path_to_key(path))
 
     # -- episodes ----------------------------------------------------------------------------
 
@@ -562,37 +486,27 @@ class ZarrStorage(LazyTensorStorage):
     def _mark_truncated(self, rows: torch.Tensor) -> None:
         """Sets ``("next", "done")`` and ``("next", "truncated")`` on flat ``rows`` (RAM, then disk)."""
         with lifecycle.critical(), self._own_write(), self._engine.cv:
-            done = self._views.get(_DONE_KEY)
+            done = self._mirror.views.get(_DONE_KEY)
             flat = done.reshape(-1, *done.shape[self.ndim:]) if self.ndim > 1 else done
             flat[rows] = True
-            if _TRUNCATED_KEY in self._views.keys(True, True):
-                trunc = self._views.get(_TRUNCATED_KEY)
+            if _TRUNCATED_KEY in self._mirror.views.keys(True, True):
+                trunc = self._mirror.views.get(_TRUNCATED_KEY)
                 (trunc.reshape(-1, *trunc.shape[self.ndim:]) if self.ndim > 1 else trunc)[rows] = True
-            self._engine.mark_dirty(torch.div(rows, self._inner_numel, rounding_mode="floor"), self._chunk_rows)
+            self._engine.mark_dirty(torch.div(rows, self._mirror.inner_numel, rounding_mode="floor"), self._mirror.chunk_rows)
         with self._own_write():
             self._bump_mutation_revision()
 
     def _close_open_episodes(self) -> None:
         """Marks the last row of every episode the previous run left open as done/truncated."""
         n = len(self)
-        if n == 0 or _DONE_KEY not in self._views.keys(True, True) or "episode" not in self._schema:
+        if n == 0 or _DONE_KEY not in self._mirror.views.keys(True, True) or "episode" not in self._mirror.schema:
             return
-        flat = {k: v.cpu() for k, v in self._flat_columns(("run", "episode", _DONE_KEY), n).items()}
+        flat = {k: v.cpu() for k, v in self._mirror.flat_columns(("run", "episode", _DONE_KEY), n).items()}
         done = flat[_DONE_KEY].reshape(n, -1).any(-1)
-        cursor = self._writer_cursor * self._inner_numel
+        cursor = self._writer_cursor * self._mirror.inner_numel
         rows = open_episode_ends(flat["run"], flat["episode"], done, cursor=cursor, full=self._is_full)
         if rows.numel():
             self._mark_truncated(rows)
-
-    def _flat_columns(self, keys, n: int) -> dict:
-        out = {}
-        n0 = self._dim0(n)
-        for key in keys:
-            col = self._views.get(key)[:n0]
-            if key in TAG_KEYS:
-                col = self._lead(col)
-            out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
-        return out
 
     # -- properties --------------------------------------------------------------------------
 
@@ -641,7 +555,7 @@ class ZarrStorage(LazyTensorStorage):
     def schema(self) -> dict[str, dict] | None:
         """The stored columns as ``{path: {"dtype": str, "shape": list}}`` (tags included), or
         ``None`` before the first write. A copy: editing it changes nothing."""
-        return None if self._schema is None else {p: dict(s) for p, s in self._schema.items()}
+        return None if self._mirror.schema is None else {p: dict(s) for p, s in self._mirror.schema.items()}
 
     def record(self) -> dict[str, Any]:
         """The committed record (the store's group attributes) as plain JSON values."""
@@ -654,11 +568,21 @@ class ZarrStorage(LazyTensorStorage):
         """
         if not self.initialized:
             raise RuntimeError(f"{self.path!r} holds no rows yet: there is no view to read.")
-        return self._views
+        return self._mirror.views
 
     @property
     def chunk_rows(self) -> int | None:
-        return self._chunk_rows
+        """Rows (along the first dimension) per Zarr chunk; ``None`` before the first write."""
+        return self._mirror.chunk_rows
+
+    # Views of the mirror, under the names the tests and benchmarks read.
+    @property
+    def _views(self) -> TensorDictBase | None:
+        return self._mirror.views
+
+    @property
+    def _schema(self) -> dict[str, dict] | None:
+        return self._mirror.schema
 
     # The commit engine's state, under the names the crash tests inspect.
     @property
@@ -699,26 +623,34 @@ class ZarrStorage(LazyTensorStorage):
     # -- writes ----------------------------------------------------------------------------------
 
     def set(self, cursor, data, *, set_cursor: bool = True):
+        self._set(cursor, data, set_cursor=set_cursor)
+
+    def _set(self, cursor, data, *, set_cursor: bool = True, as_kind: DataKind | None = None,
+             keep_tags: bool = False) -> None:
+        """``set``, for rows of any kind written as TensorDicts (``as_kind``) and rows that keep their tags."""
         try:
             self._check_writable()
-            data, n, new_paths, new_constants = self._prepare(cursor, data, set_cursor)
+            plan = plan_write(self._plan_view(), cursor, data, set_cursor=set_cursor, as_kind=as_kind,
+                              keep_tags=keep_tags)
         except Exception:
             if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
-                rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
+                rows = cursor_rows(cursor, self._mirror.max_dim0 if self.initialized else self.max_size)
                 writer_sync.rollback_writers(self, int(rows[0]) if len(rows) else 0, len(rows),
-                                             self._max_dim0 if self.initialized else self.max_size)
+                                             self._mirror.max_dim0 if self.initialized else self.max_size)
             raise
+        data = self._register(plan)
+        n, new_paths, new_constants = plan.n, plan.new_paths, plan.new_constants
         # A signal arriving from here on is handled once the write is complete
         # (a flush must never see RAM rows that are not marked dirty yet).
         with lifecycle.critical(), self._own_write():
             if not self.initialized:
-                self._init_schema(data, _is_int_cursor(cursor))
+                self._init_schema(data, plan.single)
             elif new_paths:
-                self._evolve_schema(data, new_paths, _is_int_cursor(cursor))
+                self._evolve_schema(data, new_paths, plan.single)
             if new_constants:
                 self._constants = {**self._constants, **new_constants}
                 self._engine.update_attrs({"constants": dict(self._constants)})
-            rows = dirty = _cursor_rows(cursor, self._max_dim0)
+            rows = dirty = cursor_rows(cursor, self._mirror.max_dim0)
             if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
                 dirty = slice(int(rows[0]), int(rows[-1]) + 1)
                 if not isinstance(cursor, tuple) and not isinstance(data, LazyStackedTensorDict):
@@ -727,12 +659,12 @@ class ZarrStorage(LazyTensorStorage):
                 self._write_ram(cursor, data, set_cursor)
                 if set_cursor:
                     self._write_count += n
-                    self._writer_cursor = (int(rows[-1]) + 1) % self._max_dim0
-                self._engine.mark_dirty(dirty, self._chunk_rows)
+                    self._writer_cursor = (int(rows[-1]) + 1) % self._mirror.max_dim0
+                self._engine.mark_dirty(dirty, self._mirror.chunk_rows)
             # wake the writer only if a chunk just became complete (its timer covers the rest)
             last = int(rows[-1])
-            self._engine.kick(notify=(last + 1) % self._chunk_rows == 0 or len(rows) > self._chunk_rows
-                              or int(rows[0]) // self._chunk_rows != last // self._chunk_rows)
+            self._engine.kick(notify=(last + 1) % self._mirror.chunk_rows == 0 or len(rows) > self._mirror.chunk_rows
+                              or int(rows[0]) // self._mirror.chunk_rows != last // self._mirror.chunk_rows)
 
     @contextlib.contextmanager
     def _own_write(self):
@@ -752,7 +684,7 @@ class ZarrStorage(LazyTensorStorage):
             n0 = self._len_along_dim0
             if n0:
                 with self._engine.cv:
-                    self._engine.mark_dirty(slice(0, n0), self._chunk_rows)
+                    self._engine.mark_dirty(slice(0, n0), self._mirror.chunk_rows)
                 self._engine.kick()
 
     def _write_ram(self, cursor, data: TensorDictBase, set_cursor: bool) -> None:
@@ -761,14 +693,14 @@ class ZarrStorage(LazyTensorStorage):
             self._set_last_cursor(cursor)
             self._get_new_len(data, cursor)
         if isinstance(data, LazyStackedTensorDict) and data.stack_dim == 0:
-            self._views.update_at_(data, cursor)  # each stacked TensorDict written in place
+            self._mirror.views.update_at_(data, cursor)  # each stacked TensorDict written in place
         elif isinstance(cursor, slice) and isinstance(data, TensorDict):
             # hot path (appends): one copy per leaf into its column, no TensorDict machinery
-            cols = self._columns
+            cols = self._mirror.columns
             for key, value in data.items(include_nested=True, leaves_only=True):
                 cols[key][cursor].copy_(value)
         else:
-            self._views[cursor] = data
+            self._mirror.views[cursor] = data
         self._bump_mutation_revision()
 
     def _check_writable(self) -> None:
@@ -798,163 +730,30 @@ class ZarrStorage(LazyTensorStorage):
             self._lock_file.check()  # an object-store lease can be lost
         self._engine.raise_error()
 
-    def _prepare(self, cursor, data, set_cursor: bool) -> tuple[TensorDictBase, int, list, dict]:
-        """Validates ``data`` and adds the tag columns (no side effects).
+    def _plan_view(self) -> StoreView:
+        return StoreView(self.path, self.ndim, self.initialized, self._mirror, self._kind, self._constants,
+                         self._env_names, self._env_code)
 
-        Returns the TensorDict to store, the number of transitions, the paths
-        of keys the store does not hold yet and the non-tensor entries (constants)
-        it does not hold yet.
+    def _register(self, plan: WritePlan) -> TensorDictBase:
+        """What a valid plan changes in the store's bookkeeping; returns the rows to write.
+
+        The env names it brings, the data kind (at the first write), a warning
+        given once, and the episode ids and run drawn for its rows.
         """
-        single = _is_int_cursor(cursor)
-        if isinstance(data, list):
-            if not data:
-                raise ValueError("Cannot write an empty TensorDict.")
-            try:
-                data = torch.stack(data, 0) if all(is_tensor_collection(d) for d in data) else _stack_trees(data)
-            except Exception as err:  # TorchRL's wording, so callers can match it
-                raise RuntimeError(
-                    f"Stacking the elements of the list resulted in an error ({err}). ZarrStorage expects all "
-                    f"elements of the list to have the same structure and shapes (a list passed to extend is "
-                    f"one item per element)."
-                ) from err
-        kind = DataKind.of(data)
-        if getattr(self, "_kind_override", None) is not None:
-            kind = DataKind()  # rows loaded as TensorDicts into a store of another kind
-        if self._schema is not None and kind.kind == self._kind.kind and not kind.same_as(self._kind):
-            raise ValueError(
-                f"This {kind.kind}'s structure differs from the one the store at {self.path!r} holds "
-                f"({kind.meta} vs {self._kind.meta}); every write must have the same structure."
-            )
-        if self._schema is not None and not kind.same_as(self._kind):
-            raise TypeError(
-                f"The store at {self.path!r} holds {self._kind.kind} data; got {kind.kind}. Every "
-                f"write to one store must be of the same kind."
-            )
-        expected_dims = self.ndim - (1 if single else 0)
-        td = kind.to_tensordict(data, expected_dims)
-        if td.batch_dims < expected_dims:
-            raise ValueError(
-                f"ZarrStorage(ndim={self.ndim}) expects data with at least {expected_dims} batch "
-                f"dimension(s); got batch_size {list(td.batch_size)}."
-            )
-        if td.batch_dims > expected_dims and kind.kind == "tensordict" and self.ndim == 1 and not self._warned_items:
+        for name in plan.new_env_names:
+            self.env_code(name, create=True)
+        if plan.warning is not None and not self._warned_items:
             self._warned_items = True
-            warnings.warn(
-                f"ZarrStorage(ndim=1) got a TensorDict with batch_size {list(td.batch_size)}: each of its "
-                f"{td.batch_size[0]} items is stored whole, as LazyTensorStorage does (episode tags are per "
-                f"item). For collector output, one row per transition is usually meant: pass "
-                f"data.reshape(-1) (Collector(..., postproc=lambda td: td.reshape(-1))), or create the "
-                f"store with ndim={td.batch_dims - (0 if single else 0)} for a [num_envs, time] layout.",
-                stacklevel=4,
-            )
-        if isinstance(td, LazyStackedTensorDict) and td.stack_dim == 0 and not td.is_locked and not single:
-            td = td.copy()  # kept lazy: TorchRL writes each stacked TensorDict in place (update_at_)
-        elif not isinstance(td, TensorDict) or td.is_locked:
-            td = td.to_tensordict()
-        else:
-            td = td.copy()  # shallow: tags must not leak into the caller's TensorDict
-        if single:
-            td = td.unsqueeze(0)
-        multi = isinstance(cursor, tuple)  # an element-wise write into a multi-dim storage
-        if multi and set_cursor:
-            raise ValueError("ZarrStorage appends along the first dimension only; tuple cursors are for in-place writes.")
-        inner = tuple(td.batch_size[1:])
-        if self._schema is not None and inner != self._inner_shape and not multi:
-            raise ValueError(
-                f"The store at {self.path!r} holds items of batch shape {list(self._inner_shape)} "
-                f"(after the first dimension); got {list(inner)}."
-            )
-        n0 = td.shape[0]
-        if n0 == 0:
-            raise ValueError("Cannot write an empty TensorDict.")
-        # the dims that count in len; tags are per element of these
-        lead = td.batch_size if multi else td.batch_size[: self.ndim]
-        n = lead.numel()
-        for key in _DROPPED_KEYS:
-            td.pop(key, None)
-        tags = kind.tag_columns and (getattr(self, "_kind_override", None) or kind).tag_columns
-        env = self._env_column(td, lead) if tags else None
-        episode = run = None
-        if tags and self._keep_tags:  # rows copied from another store keep their tags
-            episode, run = td.get("episode", None), td.get("run", None)
-        if tags and not set_cursor and episode is None:
-            rows = _cursor_rows(cursor, self._max_dim0 if self.initialized else self.max_size)
-            if multi and self.initialized and "episode" in self._schema:
-                episode = self._views.get("episode")[cursor].reshape(lead)
-                run = self._views.get("run")[cursor].reshape(lead)
-                env = self._views.get("env")[cursor].reshape(lead) if td.get("env", None) is None else env
-            elif self.initialized and "episode" in self._schema and bool((rows < self._max_dim0).all()):
-                # in-place writes keep the rows' tags (past len: a placeholder, as the rows are)
-                episode = self._lead(self._views.get("episode"))[rows]
-                run = self._lead(self._views.get("run"))[rows]
-            else:
-                episode = torch.full(lead, -1, dtype=torch.long)
-                run = torch.full(lead, -1, dtype=torch.long)
-        for key in TAG_KEYS:  # env codes / names are input; episode and run are drawn here (reserved names)
-            value = td.pop(key, None)
-            if value is not None and not (tags and key == "env"):
-                check_user_tag(key, value, episode if key == "episode" else run if key == "run" else None)
-        fast = self._matches_schema(td)  # the hot path: the keys, dtypes and shapes the store holds, no more
-        new_constants = {} if fast else self._check_constants(split_constants(td))
-        new_paths = [] if fast else self._validate(td, single)
-        clash = [p for p in new_paths if p in self._constants]
-        if clash:
-            raise TypeError(
-                f"Key {_backend.path_to_key(clash[0])!r} is a tensor here, but the store at {self.path!r} holds it as "
-                f"a non-tensor value ({self._constants[clash[0]]!r}); every write must keep a key's kind."
-            )
-        if self._schema is None:
-            # recorded with the schema at the first write
-            self._kind = getattr(self, "_kind_override", None) or kind
-        if tags:
-            if episode is None:  # only now, once nothing can fail, draw the episode ids
-                episode = self._episode_column(td, n).reshape(lead)
-                run = torch.full(lead, self._current_run(), dtype=torch.long)
-            td.set("episode", self._expand_tag(episode, lead, td.batch_size))
-            td.set("run", self._expand_tag(run, lead, td.batch_size))
-            td.set("env", self._expand_tag(env, lead, td.batch_size))
-        if single:
-            td = td[0]
-        return td, n, new_paths, new_constants
-
-    def _check_constants(self, found: dict[str, Any]) -> dict[str, Any]:
-        """The non-tensor entries of a write against the store's; returns the new ones."""
-        new = {}
-        for path, value in found.items():
-            key = _backend.path_to_key(path)
-            if self._schema is not None and path in self._schema:
-                raise TypeError(
-                    f"Key {key!r} holds a non-tensor value ({value!r}), but the store at {self.path!r} holds it "
-                    f"as a tensor of dtype {self._schema[path]['dtype']}; every write must keep a key's kind."
-                )
-            if path not in self._constants:
-                new[path] = value
-            elif self._constants[path] != value or type(self._constants[path]) is not type(value):
-                raise ValueError(
-                    f"Key {key!r} holds {value!r}, but the store at {self.path!r} holds {self._constants[path]!r} "
-                    f"for it. ZarrStorage keeps a non-tensor entry as one value shared by every row (in the "
-                    f"store's metadata, as LazyMemmapStorage does); store per-row values as a tensor (e.g. "
-                    f"integer codes), or use another store."
-                )
-        missing = [p for p in self._constants if p not in found]
-        if missing and self._schema is not None:
-            raise KeyError(
-                f"The data does not match the schema of the store at {self.path!r}: missing non-tensor keys "
-                f"{[_backend.path_to_key(p) for p in missing]} (held as {[self._constants[p] for p in missing]}). "
-                f"Every write must carry the keys the store holds."
-            )
-        return new
-
-    @staticmethod
-    def _expand_tag(value, lead: torch.Size, batch: torch.Size) -> torch.Tensor:
-        value = torch.as_tensor(value, dtype=torch.long).reshape(lead)
-        extra = len(batch) - len(lead)
-        return value.reshape(*lead, *([1] * extra)).expand(batch).clone() if extra else value
-
-    def _lead(self, col: torch.Tensor) -> torch.Tensor:
-        """A tag column without the item dims past ``ndim`` (tags are equal along them)."""
-        extra = len(self._inner_shape) + 1 - self.ndim
-        return col[(..., *([0] * extra))] if extra > 0 else col
+            warnings.warn(plan.warning, stacklevel=5)
+        if self._mirror.schema is None:
+            self._kind = plan.kind  # recorded with the schema at the first write
+        if plan.draw is not None:
+            done, traj, continue_open = plan.draw
+            episode = self._tagger.assign(done, traj, continue_open=continue_open)
+            if not continue_open:
+                self._tagger.reset()  # [items, time...] layouts: nothing continues across writes
+            plan.set_tags(episode.reshape(plan.lead), torch.full(plan.lead, self._current_run(), dtype=torch.long))
+        return plan.rows()
 
     def check_schema(self, data: TensorDictBase) -> None:
         """Raises, naming the key, unless ``data`` (batch ``[N]``) could be written to this store.
@@ -962,65 +761,10 @@ class ZarrStorage(LazyTensorStorage):
         Nothing is written. The tag columns (``episode``, ``run``, ``env``) are
         ignored; a store with no rows yet accepts any supported dtypes.
         """
-        data = data.exclude(*TAG_KEYS, *_DROPPED_KEYS)
-        self._check_constants(split_constants(data))
-        self._validate(data, False)
-
-    def _matches_schema(self, data: TensorDictBase) -> bool:
-        """Whether ``data`` holds exactly the store's tensor keys, dtypes and row shapes (no constants)."""
-        fast = self._schema_by_key
-        if fast is None or self._constants:
-            return False
-        seen = 0
-        dims = 1 + len(self._inner_shape)
-        # one dict lookup and two comparisons per leaf; a non-tensor leaf is a leaf here (never in ``fast``)
-        for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
-            spec = fast.get(key)
-            if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
-                return False
-            seen += 1
-        return seen == len(fast)
-
-    def _validate(self, data: TensorDictBase, single: bool) -> list[str]:
-        """Raises, naming the key, on a dtype / shape change; returns the paths of new keys."""
-        if self._matches_schema(data):
-            return []
-        check_user_keys(data.keys(include_nested=True), allowed=(DataKind.TENSOR_KEY, DataKind.PYTREE_KEY))
-        if self._schema is None:
-            for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
-                if not isinstance(value, torch.Tensor):
-                    raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
-                _backend.torch_dtype_name(value.dtype)
-                _backend.key_to_path(key)
-            return []
-        schema = {p: spec for p, spec in self._schema.items() if p not in TAG_KEYS}
-        new, missing = check_against(schema, data, data.batch_dims, repr(self.path))
-        if missing:
-            raise KeyError(
-                f"The TensorDict does not match the schema of the store at {self.path!r}: missing keys "
-                f"{[_backend.path_to_key(p) for p in missing]}. Every write must carry the keys the "
-                f"store holds (new keys may be added)."
-            )
-        return new
-
-    def _env_column(self, data: TensorDictBase, batch: torch.Size) -> torch.Tensor:
-        env = data.get("env", None)
-        if env is None:
-            return torch.full(batch, self._env_code, dtype=torch.long)
-        names = env_names_of(env, batch.numel())
-        if names is not None:
-            return torch.tensor([self.env_code(x, create=True) for x in names], dtype=torch.long).reshape(batch)
-        env = torch.as_tensor(env)
-        if env.dtype.is_floating_point or env.dtype == torch.bool:
-            raise ValueError(f"Key 'env' must hold integer env codes or names, got dtype {env.dtype}.")
-        env = env.reshape(batch).long()
-        bad = (env < UNKNOWN_ENV) | (env >= len(self._env_names))
-        if bad.any():
-            raise ValueError(
-                f"Key 'env' holds codes {env[bad].unique().tolist()} unknown to this store "
-                f"(known: {dict(enumerate(self._env_names))}). Use storage.env_code(name, create=True)."
-            )
-        return env
+        data = data.exclude(*TAG_KEYS, *DROPPED_KEYS)
+        view = self._plan_view()
+        check_constants(view, split_constants(data))
+        validate(view, data, False)
 
     def _current_run(self) -> int:
         if self._run is None:
@@ -1029,47 +773,27 @@ class ZarrStorage(LazyTensorStorage):
             self._engine.mark_meta_dirty()
         return self._run
 
-    def _episode_column(self, data: TensorDictBase, n: int) -> torch.Tensor:
-        """Global episode ids: collector ``traj_ids`` (or done flags) mapped past every stored id."""
-        done = data.get(_DONE_KEY, None)
-        done = np.zeros(n, dtype=bool) if done is None else done.reshape(n, -1).any(-1).cpu().numpy()
-        traj = data.get(_TRAJ_KEY, None)
-        if traj is not None and traj.numel() != n:  # per-step ids of whole stored items: their first
-            traj = traj.reshape(n, -1)[:, 0] if traj.numel() % n == 0 else None
-        traj = traj.reshape(n).long().cpu().numpy() if traj is not None else None
-        if self.ndim == 1:
-            return self._tagger.assign(done, traj)
-        # [items, time...] layouts: each item is its own stream; nothing continues across writes
-        if traj is None:
-            per_item = done.reshape(data.shape[0], -1)
-            seg = np.cumsum(per_item, 1) - per_item
-            traj = (np.arange(per_item.shape[0])[:, None] * (per_item.shape[1] + 1) + seg).reshape(-1)
-        ids = self._tagger.assign(done, traj, continue_open=False)
-        self._tagger.reset()
-        return ids
-
     def _init_schema(self, data: TensorDictBase, single: bool) -> None:
         row = data if single else data[0]
         schema = spec_of(row.reshape(-1)[0] if row.batch_dims else row)
-        self._inner_shape = tuple(row.batch_size)
-        row_bytes = PackedLayout(schema).row_bytes * self._inner_numel
-        if self._chunk_rows is None:
+        self._mirror.inner_shape = tuple(row.batch_size)
+        row_bytes = PackedLayout(schema).row_bytes * self._mirror.inner_numel
+        if self._mirror.chunk_rows is None:
             # ~4 MiB of rows per chunk group: large enough for fast sequential I/O,
             # small enough that a commit of a partial chunk stays cheap.
             target = max(1024, min(65536, 2 ** round(math.log2(max(1, (4 << 20) // max(row_bytes, 1))))))
-            self._chunk_rows = min(target, self._max_dim0)
-        self.max_size = self._max_dim0 * self._inner_numel  # as TorchRL rounds it for ndim > 1
+            self._mirror.chunk_rows = min(target, self._mirror.max_dim0)
+        self.max_size = self._mirror.max_size = self._mirror.max_dim0 * self._mirror.inner_numel  # as TorchRL rounds it for ndim > 1
         self._create_arrays(schema)
-        self._schema = schema
-        self._index_schema()
+        self._mirror.configure(schema)
         self._allocate()
         self.initialized = True
         # Schema first: a store whose arrays exist but whose schema is unknown would not reopen.
         self._engine.update_attrs(
             {
                 "schema": schema,
-                "chunk_rows": self._chunk_rows,
-                "inner_shape": list(self._inner_shape),
+                "chunk_rows": self._mirror.chunk_rows,
+                "inner_shape": list(self._mirror.inner_shape),
                 "kind": self._kind.to_json(),
                 "max_size": self.max_size,
             }
@@ -1078,11 +802,11 @@ class ZarrStorage(LazyTensorStorage):
     def _create_arrays(self, schema: dict[str, dict]) -> None:
         for path, spec in schema.items():
             dtype = _backend.torch_dtype(spec["dtype"])
-            shape = (self._max_dim0, *self._inner_shape, *spec["shape"])
+            shape = (self._mirror.max_dim0, *self._mirror.inner_shape, *spec["shape"])
             self._engine.arrays[path] = self._group.create_array(
                 path,
                 shape=shape,
-                chunks=(self._chunk_rows, *shape[1:]),
+                chunks=(self._mirror.chunk_rows, *shape[1:]),
                 dtype=_backend.numpy_dtype(dtype),
                 compressors=_backend.make_compressors(
                     self._compressor, self._compression_level, _backend.numpy_dtype(dtype).itemsize
@@ -1092,7 +816,7 @@ class ZarrStorage(LazyTensorStorage):
                 config=integrity.ARRAY_CONFIG,  # all-zero chunks written too: a missing one is damage
             )
             if self.initialized:  # a key added later: its older rows are zeros, in chunk files
-                integrity.write_zero_chunks(self._engine.arrays[path], self._len_along_dim0, self._chunk_rows)
+                integrity.write_zero_chunks(self._engine.arrays[path], self._len_along_dim0, self._mirror.chunk_rows)
 
     def _evolve_schema(self, data: TensorDictBase, new_paths: list[str], single: bool) -> None:
         """Adds columns for keys the store did not hold yet (older rows read zeros)."""
@@ -1102,11 +826,10 @@ class ZarrStorage(LazyTensorStorage):
         added = {p: s for p, s in spec_of(row.select(*[_backend.path_to_key(p) for p in new_paths])).items()}
         self.flush()  # committed rows first: the new arrays start from a clean state
         self._create_arrays(added)
-        self._schema = {**self._schema, **added}
-        self._index_schema()
+        self._mirror.configure({**self._mirror.schema, **added})
         with self._engine.cv:
             self._allocate()
-        self._engine.update_attrs({"schema": self._schema})
+        self._engine.update_attrs({"schema": self._mirror.schema})
         with self._own_write():
             self._bump_mutation_revision()
 
@@ -1134,38 +857,17 @@ class ZarrStorage(LazyTensorStorage):
         if not self.initialized:
             raise RuntimeError("Cannot get elements out of a non-initialized storage.")
         if isinstance(index, str) or (isinstance(index, tuple) and index and all(isinstance(i, str) for i in index)):
-            rows = self._views if self._is_full else self._views[: self._len_along_dim0]
+            rows = self._mirror.views if self._is_full else self._mirror.views[: self._len_along_dim0]
             if self._constants:  # a non-tensor entry is a column too
                 rows = with_constants(rows, self._constants)
             return rows[index]  # a column, as LazyTensorStorage gives it
         if isinstance(index, list):
             index = torch.as_tensor(index)
-        packed = self._packed if self._is_full else self._packed[: self._len_along_dim0]
-        rows = self._layout.views(packed[index], self._hidden)
+        packed = self._mirror.packed if self._is_full else self._mirror.packed[: self._len_along_dim0]
+        rows = self._mirror.layout.views(packed[index], self._hidden)
         if self._constants:
             rows = with_constants(rows, self._constants)
         return self._kind.from_tensordict(rows)
-
-    def _copy_chunk(self, c: int) -> tuple[torch.Tensor, dict]:
-        """A snapshot of chunk ``c``: ONE copy of its packed rows (taken under the engine's lock).
-
-        The per-array split happens later, in :meth:`_chunk_arrays`, outside the
-        lock, so a foreground ``set`` waits for a memcpy, not for 30 column copies.
-        """
-        lo = c * self._chunk_rows
-        hi = min(lo + self._chunk_rows, self._max_dim0)
-        valid = max(0, min(hi, self._len_along_dim0) - lo)
-        packed = self._packed[lo:hi].to("cpu", copy=True)  # a CUDA mirror (device="cuda") is written from host memory
-        if valid < hi - lo:
-            packed[valid:] = 0  # rows past len reach the disk as zeros
-        return packed, self._layout
-
-    def _chunk_arrays(self, snapshot: tuple[torch.Tensor, Any]) -> dict[str, np.ndarray]:
-        """The per-array contents of a chunk snapshot (see :meth:`_copy_chunk`)."""
-        packed, layout = snapshot
-        views = layout.views(packed)
-        return {path: np.ascontiguousarray(views.get(_backend.path_to_key(path)).cpu().numpy())
-                for path in self._schema}
 
     def _meta_snapshot(self) -> dict:
         last = self._last_cursor_index
@@ -1270,6 +972,7 @@ class ZarrStorage(LazyTensorStorage):
         if not self.read_only:
             return len(self)
         saved = dict(self.__dict__)
+        mirror_state = dict(vars(self._mirror))
         engine_state = {k: v for k, v in vars(self._engine).items() if k in ("group", "committed_len", "committed_write_count")}
         try:
             group = _backend.open_group(self._store, read_only=True)
@@ -1281,7 +984,7 @@ class ZarrStorage(LazyTensorStorage):
                 return 0
             self._group = self._engine.group = group
             if int(attrs["max_size"]) != self.max_size:  # the writer grew the store
-                self.max_size = int(attrs["max_size"])
+                self.max_size = self._mirror.max_size = int(attrs["max_size"])
                 self.__dict__.pop("_total_shape_value", None)
             self._sync_attrs(attrs)
             self.initialized = False
@@ -1289,6 +992,7 @@ class ZarrStorage(LazyTensorStorage):
         except BaseException:
             # a failed refresh leaves the handle as it was (its rows, its length)
             self.__dict__.update(saved)
+            vars(self._mirror).update(mirror_state)
             vars(self._engine).update(engine_state)
             raise
         return len(self)
@@ -1302,8 +1006,8 @@ class ZarrStorage(LazyTensorStorage):
         :class:`~torchrl.data.LazyTensorStorage` can load this state too.
         """
         self.flush()
-        rows = self._views.exclude(*TAG_KEYS).state_dict() if self.initialized else {}
-        tags = self._views.select(*TAG_KEYS, strict=False).state_dict() if self.initialized else {}
+        rows = self._mirror.views.exclude(*TAG_KEYS).state_dict() if self.initialized else {}
+        tags = self._mirror.views.select(*TAG_KEYS, strict=False).state_dict() if self.initialized else {}
         return {
             "_storage": rows,
             "initialized": self.initialized,
@@ -1352,14 +1056,11 @@ class ZarrStorage(LazyTensorStorage):
             if meta.get("constants"):
                 rows = with_constants(rows.clone(False), meta["constants"])
             kind = DataKind.from_json(meta.get("kind")) if meta.get("kind") else None
-            if kind is not None and kind.kind != "tensordict" and self._schema is None:
-                self._kind = kind  # written as a TensorDict, read back as the source's kind
-            self._keep_tags = tags is not None
-            try:
-                self._write_rows(torch.arange(n0), rows)
-            finally:
-                self._keep_tags = False
-            self._writer_cursor = int(meta.get("cursor", n0 % self._max_dim0)) % self._max_dim0
+            if kind is None or kind.kind == "tensordict" or self._mirror.schema is not None:
+                kind = self._kind
+            # written as a TensorDict, read back as the source's kind (or the store's)
+            self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tags is not None)
+            self._writer_cursor = int(meta.get("cursor", n0 % self._mirror.max_dim0)) % self._mirror.max_dim0
             self._write_count = int(meta.get("write_count", n0))
             if tags is not None:
                 self._tagger.next_id = max(self._tagger.next_id, int(rows.get("episode").max()) + 1)
@@ -1370,17 +1071,6 @@ class ZarrStorage(LazyTensorStorage):
         with self._own_write():
             self._bump_mutation_revision()
         self.flush()
-
-    def _write_rows(self, cursor: torch.Tensor, rows: TensorDictBase) -> None:
-        """Writes TensorDict rows whatever the store's data kind (for loads)."""
-        kind = self._kind
-        try:
-            self._kind = DataKind()
-            self._kind_override = kind
-            self.set(cursor, rows)
-        finally:
-            self._kind = kind
-            self._kind_override = None
 
     def __reduce__(self):
         """Pickling gives a read-only handle on the same store in the receiving process.
@@ -1405,9 +1095,9 @@ class ZarrStorage(LazyTensorStorage):
         """
         n = len(self)
         out: dict[str, Any] = {"path": self.path, "rows": n, "max_size": self.max_size}
-        keys = set(self._views.keys(True, True)) if self.initialized else set()
+        keys = set(self._mirror.views.keys(True, True)) if self.initialized else set()
         if n and "episode" in keys:
-            cols = self._flat_columns(
+            cols = self._mirror.flat_columns(
                 [k for k in ("episode", "run", ("next", "is_success"), _DONE_KEY) if k in keys], n
             )
             out["episodes"] = int(torch.unique(cols["episode"]).numel())
@@ -1467,31 +1157,3 @@ def _rows_of_state(source: Any) -> TensorDictBase | None:
 def _leading(td: TensorDictBase) -> torch.Size:
     leaf = next(iter(td.values(True, True)))
     return leaf.shape[:1]
-
-
-def _stack_trees(items: list) -> Any:
-    from torch.utils._pytree import tree_map
-
-    first = items[0]
-    if isinstance(first, torch.Tensor):
-        return torch.stack(items, 0)
-    return tree_map(lambda *xs: torch.stack(xs, 0), first, *items[1:])
-
-
-def _is_int_cursor(cursor) -> bool:
-    return isinstance(cursor, (int, np.integer)) or (isinstance(cursor, torch.Tensor) and cursor.ndim == 0)
-
-
-def _cursor_rows(cursor, max_size: int) -> torch.Tensor:
-    """The first-dimension rows a cursor touches (a tuple cursor indexes several dims)."""
-    if isinstance(cursor, tuple):
-        first = cursor[0] if cursor else slice(None)
-        rows = _cursor_rows(first, max_size)
-        return rows.unique() if rows.numel() > 1 else rows
-    if _is_int_cursor(cursor):
-        return torch.tensor([int(cursor)], dtype=torch.long)
-    if isinstance(cursor, slice):
-        return torch.arange(*cursor.indices(max_size), dtype=torch.long)
-    if isinstance(cursor, range):
-        return torch.tensor(list(cursor), dtype=torch.long)
-    return torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()

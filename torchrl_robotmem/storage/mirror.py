@@ -1,0 +1,214 @@
+"""The packed RAM mirror of a store's rows: layout, allocation, growth, loading, chunk snapshots.
+
+Every stored column of a row lives in one packed ``uint8`` buffer
+(:class:`~torchrl_robotmem.storage.schema.PackedLayout`): a sampled batch is one
+gather of whole rows, and a chunk the commit engine writes is one ``memcpy``
+(:meth:`RamMirror.copy_chunk`, taken under the engine's lock) split per array
+later (:meth:`RamMirror.chunk_arrays`, outside it). The mirror also reads a
+store's rows into RAM (:meth:`RamMirror.load`), including a reader's re-read
+of chunks a writer overwrote during the load.
+
+It knows nothing of TorchRL: the storage tells it how many transitions it
+holds (``length``, a callable: the storage's ``len``).
+
+Example:
+    >>> import torch
+    >>> from torchrl_robotmem.storage.mirror import RamMirror
+    >>> m = RamMirror(8, length=lambda: 3)
+    >>> m.chunk_rows = 4
+    >>> m.configure({"x": {"dtype": "float32", "shape": [2]}})
+    >>> m.allocate()
+    >>> m.views.get("x")[:3] = 1.0
+    >>> snap = m.copy_chunk(0)
+    >>> m.chunk_arrays(snap)["x"].tolist()
+    [[1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [0.0, 0.0]]
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+from . import _backend
+from .format import read_rows
+from .journal import PREFIX, journal_chunks
+from .schema import PackedLayout
+from .tags import TAG_KEYS
+
+__all__ = ["RamMirror"]
+
+
+class RamMirror:
+    """The rows of a store in RAM, packed, and the chunk snapshots the commit engine writes.
+
+    Args:
+        max_size (int): the store's capacity in transitions.
+
+    Keyword Args:
+        ndim (int): leading batch dimensions one stored item spans. Defaults to 1.
+        device: device of the buffer. Defaults to ``"cpu"``.
+        length: a callable returning how many transitions hold data (the storage's
+            ``len``); rows past them reach the disk as zeros. Defaults to none.
+
+    Example:
+        >>> m = RamMirror(10, ndim=1)
+        >>> m.max_dim0, m.dim0(7)
+        (10, 7)
+    """
+
+    def __init__(self, max_size: int, *, ndim: int = 1, device: Any = "cpu",
+                 length: Callable[[], int] = lambda: 0) -> None:
+        self.max_size = int(max_size)
+        self.ndim = int(ndim)
+        self.device = device
+        self.length = length
+        self.schema: dict[str, dict] | None = None
+        self.inner_shape: tuple[int, ...] = ()
+        self.chunk_rows: int | None = None
+        self.layout: PackedLayout | None = None
+        self.key_specs: dict | None = None  # {key: (dtype, row shape)} without the tags: the hot validation path
+        self.packed: torch.Tensor | None = None
+        self.views: TensorDictBase | None = None
+        self.columns: dict = {}
+
+    # -- shapes along the first dimension --------------------------------------------
+
+    @property
+    def inner_numel(self) -> int:
+        """Elements per first-dimension row that count in ``len`` (the dims up to ``ndim``)."""
+        return math.prod(self.inner_shape[: self.ndim - 1]) if self.ndim > 1 else 1
+
+    @property
+    def max_dim0(self) -> int:
+        """Rows along the first dimension."""
+        return -(-self.max_size // self.inner_numel)
+
+    def dim0(self, n: int) -> int:
+        """First-dimension rows that ``n`` transitions span."""
+        return -(-int(n) // self.inner_numel)
+
+    def filled(self) -> int:
+        """First-dimension rows that hold data."""
+        return self.dim0(self.length())
+
+    # -- schema and allocation -------------------------------------------------------
+
+    def configure(self, schema: dict[str, dict] | None) -> None:
+        """Sets the columns (``{path: {"dtype", "shape"}}``, tags included) and rebuilds the layout.
+
+        ``inner_shape`` and ``chunk_rows`` are plain attributes, set before.
+        """
+        self.schema = schema
+        self.layout = PackedLayout(schema) if schema is not None else None
+        self.key_specs = None if schema is None else {
+            _backend.path_to_key(p): (_backend.torch_dtype(spec["dtype"]), torch.Size(spec["shape"]))
+            for p, spec in schema.items()
+            if p not in TAG_KEYS
+        }
+
+    def allocate(self, *, keep: bool = True) -> None:
+        """(Re)builds the packed buffer for the current schema, keeping the rows that hold data (unless not ``keep``)."""
+        old = self.views if keep else None
+        self.packed = self.layout.allocate((self.max_dim0, *self.inner_shape), self.device)
+        self.views = self.layout.views(self.packed)
+        self.columns = dict(self.views.items(include_nested=True, leaves_only=True))
+        if old is not None:
+            n0 = self.filled()
+            for path in self.schema:
+                key = _backend.path_to_key(path)
+                col = old.get(key, None)
+                self.views.get(key)[:n0] = col[:n0] if col is not None else 0
+
+    def column(self, path: str) -> torch.Tensor:
+        """The column of an array path (all rows)."""
+        return self.views.get(_backend.path_to_key(path))
+
+    def lead(self, col: torch.Tensor) -> torch.Tensor:
+        """A tag column without the item dims past ``ndim`` (tags are equal along them)."""
+        extra = len(self.inner_shape) + 1 - self.ndim
+        return col[(..., *([0] * extra))] if extra > 0 else col
+
+    def flat_columns(self, keys, n: int) -> dict:
+        """The first ``n`` transitions of columns ``keys``, flattened over the ``ndim`` leading dims."""
+        out = {}
+        n0 = self.dim0(n)
+        for key in keys:
+            col = self.views.get(key)[:n0]
+            if key in TAG_KEYS:
+                col = self.lead(col)
+            out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
+        return out
+
+    # -- what the commit engine reads ------------------------------------------------
+
+    def copy_chunk(self, c: int) -> tuple[torch.Tensor, PackedLayout]:
+        """A snapshot of chunk ``c``: ONE copy of its packed rows (taken under the engine's lock).
+
+        The per-array split happens later, in :meth:`chunk_arrays`, outside the
+        lock, so a foreground ``set`` waits for a memcpy, not for 30 column copies.
+        """
+        lo = c * self.chunk_rows
+        hi = min(lo + self.chunk_rows, self.max_dim0)
+        valid = max(0, min(hi, self.filled()) - lo)
+        packed = self.packed[lo:hi].to("cpu", copy=True)  # a CUDA mirror (device="cuda") is written from host memory
+        if valid < hi - lo:
+            packed[valid:] = 0  # rows past len reach the disk as zeros
+        return packed, self.layout
+
+    def chunk_arrays(self, snapshot: tuple[torch.Tensor, PackedLayout]) -> dict[str, np.ndarray]:
+        """The per-array contents of a chunk snapshot (see :meth:`copy_chunk`)."""
+        packed, layout = snapshot
+        views = layout.views(packed)
+        return {path: np.ascontiguousarray(views.get(_backend.path_to_key(path)).cpu().numpy())
+                for path in self.schema}
+
+    # -- loading ---------------------------------------------------------------------
+
+    def load(self, group: Any, n0: int, *, store_path: Any, read_only: bool) -> None:
+        """Reads the first ``n0`` rows of every array of ``group`` (a damaged chunk raises, naming it)."""
+        if not n0:
+            return
+        for path in self.schema:
+            self.column(path)[:n0] = torch.from_numpy(
+                read_rows(group[path], path, n0, self.chunk_rows, store_path, read_only))
+
+    def apply_journal(self, group: Any, journal: dict) -> None:
+        """A reader applies a pending journal in RAM only."""
+        for path, rows, values in journal_chunks(group, journal):
+            self.column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
+
+    def reread_overwritten(self, store: Any, group: Any, record: dict, n0: int, *, store_path: Any) -> None:
+        """Reads again, chunk by chunk, the rows a writer may have overwritten during a reader's load.
+
+        An overwrite (a ring wrapping around, a journalled in-place write)
+        replaces one array's chunk at a time, so a read that overlapped it can
+        return rows whose columns come from two writes. When the commit record
+        changed during the load and an overwrite was possible, each chunk is read
+        until the record is the same before and after (from the journal while
+        one names the chunk): every row is whole, possibly newer than ``len``.
+        """
+        def now() -> dict:
+            return _backend.open_group(store, read_only=True).attrs.asdict()
+
+        after = now()
+        wrapped = int(after.get("write_count", 0)) > self.max_size
+        if after == record or not (wrapped or record.get("journal") or after.get("journal")):
+            return
+        rows = self.chunk_rows
+        for lo in range(0, n0, rows):
+            hi = min(lo + rows, n0)
+            for _ in range(1000):
+                before = now()
+                journal = before.get("journal")
+                prefix = PREFIX if journal and lo // rows in journal["chunks"] else ""
+                values = {path: group[prefix + path][lo:hi] for path in self.schema}
+                if now() == before:
+                    break
+            else:
+                raise RuntimeError(f"Could not read rows {lo}..{hi} of {store_path!r}: the writer commits too often.")
+            for path, v in values.items():
+                self.column(path)[lo:hi] = torch.from_numpy(np.ascontiguousarray(v))

@@ -1,0 +1,409 @@
+"""The write planner: validates and normalises one ``set`` into a :class:`WritePlan`, changing nothing.
+
+A write may be a TensorDict (lazy stacks, nested keys), a list of them, a tensor,
+a tensorclass or a pytree. :func:`plan_write` turns it into the TensorDict the
+RAM mirror stores, checks it against the store (kind, keys, dtypes, item
+shape, non-tensor entries, reserved names) and computes the tag columns. It
+reads the store through a :class:`StoreView` and writes nothing: what a plan
+changes in the store (env names to register, the data kind to record, the
+episode ids and run to draw, a warning to give once) is carried by the plan
+and done by the storage when it applies it.
+
+Example:
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> from torchrl_robotmem.storage.mirror import RamMirror
+    >>> from torchrl_robotmem.storage.planner import StoreView, plan_write
+    >>> from torchrl_robotmem.storage.schema import DataKind
+    >>> view = StoreView("m.zarr", 1, False, RamMirror(10), DataKind(), {}, [], -1)
+    >>> plan = plan_write(view, slice(0, 3), TensorDict({"x": torch.zeros(3, 2)}, [3]), set_cursor=True)
+    >>> plan.n, sorted(plan.data.keys()), plan.draw is not None
+    (3, ['x'], True)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase, is_tensor_collection
+from tensordict.base import _is_leaf_nontensor
+
+from . import _backend
+from .schema import DataKind, check_against, env_names_of, split_constants
+from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag
+
+__all__ = ["StoreView", "WritePlan", "check_constants", "cursor_rows", "is_int_cursor", "plan_write", "validate"]
+
+DONE_KEY = ("next", "done")
+TRAJ_KEY = ("collector", "traj_ids")
+# Written into the caller's TensorDict by TorchRL's TensorDictRoundRobinWriter;
+# it equals the row position, so it is not stored (sample() adds it back).
+DROPPED_KEYS = ("index",)
+
+
+class StoreView(NamedTuple):
+    """What a plan reads of the store (nothing here is changed by planning).
+
+    Args:
+        path: the store's path (for messages).
+        ndim (int): leading batch dimensions one stored item spans.
+        initialized (bool): whether the store holds a schema and a RAM mirror.
+        mirror (RamMirror): the RAM mirror (schema, item shape, stored tags).
+        kind (DataKind): the store's data kind.
+        constants (dict): the store's non-tensor entries.
+        env_names (list): the store's env names (index = env code).
+        env_code (int): the env code of rows written without an env entry.
+    """
+
+    path: Any
+    ndim: int
+    initialized: bool
+    mirror: Any
+    kind: DataKind
+    constants: dict
+    env_names: list
+    env_code: int
+
+
+@dataclass
+class WritePlan:
+    """One validated write, ready to apply.
+
+    Args:
+        data (TensorDictBase): the rows to store, with a first dimension even for a
+            single-row cursor (:meth:`rows` drops it), the tags set unless
+            :attr:`draw` asks for them (then :meth:`set_tags` sets them).
+        n (int): transitions written.
+        single (bool): an integer cursor (one item).
+        lead (torch.Size): the dims the tags are per element of.
+        kind (DataKind): the data kind the store records at its first write.
+        new_paths (list): paths of keys the store does not hold yet.
+        new_constants (dict): non-tensor entries the store does not hold yet.
+        new_env_names (list): env names to register, in order (their codes are
+            already in ``data["env"]``).
+        draw (tuple, optional): ``(done, traj, continue_open)``: the episode ids
+            (and this session's run) are drawn from these when the plan is applied.
+        warning (str, optional): advice given once per store when applied.
+        env (torch.Tensor, optional): the rows' env codes (per element of :attr:`lead`).
+    """
+
+    data: TensorDictBase
+    n: int
+    single: bool
+    lead: torch.Size
+    kind: DataKind
+    new_paths: list = field(default_factory=list)
+    new_constants: dict = field(default_factory=dict)
+    new_env_names: list = field(default_factory=list)
+    draw: tuple | None = None
+    warning: str | None = None
+    env: torch.Tensor | None = None
+
+    def set_tags(self, episode: torch.Tensor, run: torch.Tensor) -> None:
+        """Sets the ``episode`` / ``run`` / ``env`` columns (``episode`` and ``run`` per element of :attr:`lead`)."""
+        batch = self.data.batch_size
+        self.data.set("episode", expand_tag(episode, self.lead, batch))
+        self.data.set("run", expand_tag(run, self.lead, batch))
+        self.data.set("env", expand_tag(self.env, self.lead, batch))
+
+    def rows(self) -> TensorDictBase:
+        """The TensorDict to write at the cursor."""
+        return self.data[0] if self.single else self.data
+
+
+# -- cursors --------------------------------------------------------------------------
+
+
+def is_int_cursor(cursor) -> bool:
+    """Whether ``cursor`` names one item (an int or a 0-d tensor)."""
+    return isinstance(cursor, (int, np.integer)) or (isinstance(cursor, torch.Tensor) and cursor.ndim == 0)
+
+
+def cursor_rows(cursor, max_size: int) -> torch.Tensor:
+    """The first-dimension rows a cursor touches (a tuple cursor indexes several dims)."""
+    if isinstance(cursor, tuple):
+        first = cursor[0] if cursor else slice(None)
+        rows = cursor_rows(first, max_size)
+        return rows.unique() if rows.numel() > 1 else rows
+    if is_int_cursor(cursor):
+        return torch.tensor([int(cursor)], dtype=torch.long)
+    if isinstance(cursor, slice):
+        return torch.arange(*cursor.indices(max_size), dtype=torch.long)
+    if isinstance(cursor, range):
+        return torch.tensor(list(cursor), dtype=torch.long)
+    return torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()
+
+
+def expand_tag(value, lead: torch.Size, batch: torch.Size) -> torch.Tensor:
+    """A tag per element of ``lead``, repeated over the item dims past it."""
+    value = torch.as_tensor(value, dtype=torch.long).reshape(lead)
+    extra = len(batch) - len(lead)
+    return value.reshape(*lead, *([1] * extra)).expand(batch).clone() if extra else value
+
+
+# -- the plan -------------------------------------------------------------------------
+
+
+def plan_write(view: StoreView, cursor, data, *, set_cursor: bool, as_kind: DataKind | None = None,
+               keep_tags: bool = False) -> WritePlan:
+    """Validates ``data`` for a write at ``cursor`` and adds the tag columns (no side effects).
+
+    Args:
+        view (StoreView): the store.
+        cursor: where the rows go (int, slice, range, tensor, or a tuple for
+            element-wise writes into a multi-dim storage).
+        data: the rows.
+
+    Keyword Args:
+        set_cursor (bool): an append by the buffer's writer (``False``: an in-place
+            write, which keeps the rows' tags).
+        as_kind (DataKind, optional): ``data`` is a TensorDict holding rows of this
+            kind (loading another storage's state): recorded as the store's kind.
+        keep_tags (bool): ``data`` carries ``episode`` / ``run`` tags to keep (rows
+            copied from another store).
+    """
+    single = is_int_cursor(cursor)
+    kind, td, warning = _normalise(view, data, single, as_kind)
+    multi = isinstance(cursor, tuple)  # an element-wise write into a multi-dim storage
+    if multi and set_cursor:
+        raise ValueError("ZarrStorage appends along the first dimension only; tuple cursors are for in-place writes.")
+    mirror = view.mirror
+    inner = tuple(td.batch_size[1:])
+    if mirror.schema is not None and inner != mirror.inner_shape and not multi:
+        raise ValueError(
+            f"The store at {view.path!r} holds items of batch shape {list(mirror.inner_shape)} "
+            f"(after the first dimension); got {list(inner)}."
+        )
+    if td.shape[0] == 0:
+        raise ValueError("Cannot write an empty TensorDict.")
+    # the dims that count in len; tags are per element of these
+    lead = td.batch_size if multi else td.batch_size[: view.ndim]
+    for key in DROPPED_KEYS:
+        td.pop(key, None)
+    tags = kind.tag_columns and (as_kind or kind).tag_columns
+    env, new_names = _env_column(view, td, lead) if tags else (None, [])
+    episode = run = None
+    if tags and keep_tags:  # rows copied from another store keep their tags
+        episode, run = td.get("episode", None), td.get("run", None)
+    if tags and not set_cursor and episode is None:
+        episode, run, env = _stored_tags(view, cursor, td, lead, env)
+    for key in TAG_KEYS:  # env codes / names are input; episode and run are drawn here (reserved names)
+        value = td.pop(key, None)
+        if value is not None and not (tags and key == "env"):
+            check_user_tag(key, value, episode if key == "episode" else run if key == "run" else None)
+    fast = matches_schema(view, td)  # the hot path: the keys, dtypes and shapes the store holds, no more
+    new_constants = {} if fast else check_constants(view, split_constants(td))
+    new_paths = [] if fast else validate(view, td, single)
+    clash = [p for p in new_paths if p in view.constants]
+    if clash:
+        raise TypeError(
+            f"Key {_backend.path_to_key(clash[0])!r} is a tensor here, but the store at {view.path!r} holds it as "
+            f"a non-tensor value ({view.constants[clash[0]]!r}); every write must keep a key's kind."
+        )
+    plan = WritePlan(td, lead.numel(), single, lead, as_kind or kind, new_paths, new_constants, new_names,
+                     warning=warning, env=env)
+    if tags:
+        if episode is None:  # drawn when the plan is applied, once nothing can fail
+            plan.draw = _episode_inputs(view, td, plan.n)
+        else:
+            plan.set_tags(episode, run)
+    return plan
+
+
+def _normalise(view: StoreView, data, single: bool, as_kind: DataKind | None) -> tuple[DataKind, TensorDictBase, str | None]:
+    """``data`` as a shallow TensorDict copy with a first dimension; its kind, checked against the store's."""
+    if isinstance(data, list):
+        if not data:
+            raise ValueError("Cannot write an empty TensorDict.")
+        try:
+            data = torch.stack(data, 0) if all(is_tensor_collection(d) for d in data) else _stack_trees(data)
+        except Exception as err:  # TorchRL's wording, so callers can match it
+            raise RuntimeError(
+                f"Stacking the elements of the list resulted in an error ({err}). ZarrStorage expects all "
+                f"elements of the list to have the same structure and shapes (a list passed to extend is "
+                f"one item per element)."
+            ) from err
+    # rows loaded as TensorDicts into a store of another kind are checked as TensorDicts
+    kind = DataKind.of(data) if as_kind is None else DataKind()
+    stored = view.kind if as_kind is None else DataKind()
+    if view.mirror.schema is not None and kind.kind == stored.kind and not kind.same_as(stored):
+        raise ValueError(
+            f"This {kind.kind}'s structure differs from the one the store at {view.path!r} holds "
+            f"({kind.meta} vs {stored.meta}); every write must have the same structure."
+        )
+    if view.mirror.schema is not None and not kind.same_as(stored):
+        raise TypeError(
+            f"The store at {view.path!r} holds {stored.kind} data; got {kind.kind}. Every "
+            f"write to one store must be of the same kind."
+        )
+    expected_dims = view.ndim - (1 if single else 0)
+    td = kind.to_tensordict(data, expected_dims)
+    if td.batch_dims < expected_dims:
+        raise ValueError(
+            f"ZarrStorage(ndim={view.ndim}) expects data with at least {expected_dims} batch "
+            f"dimension(s); got batch_size {list(td.batch_size)}."
+        )
+    warning = None
+    if td.batch_dims > expected_dims and kind.kind == "tensordict" and view.ndim == 1:
+        warning = (
+            f"ZarrStorage(ndim=1) got a TensorDict with batch_size {list(td.batch_size)}: each of its "
+            f"{td.batch_size[0]} items is stored whole, as LazyTensorStorage does (episode tags are per "
+            f"item). For collector output, one row per transition is usually meant: pass "
+            f"data.reshape(-1) (Collector(..., postproc=lambda td: td.reshape(-1))), or create the "
+            f"store with ndim={td.batch_dims} for a [num_envs, time] layout."
+        )
+    if isinstance(td, LazyStackedTensorDict) and td.stack_dim == 0 and not td.is_locked and not single:
+        td = td.copy()  # kept lazy: TorchRL writes each stacked TensorDict in place (update_at_)
+    elif not isinstance(td, TensorDict) or td.is_locked:
+        td = td.to_tensordict()
+    else:
+        td = td.copy()  # shallow: tags must not leak into the caller's TensorDict
+    if single:
+        td = td.unsqueeze(0)
+    return kind, td, warning
+
+
+def _stored_tags(view: StoreView, cursor, td: TensorDictBase, lead: torch.Size, env):
+    """The tags an in-place write keeps: the rows' own (past len: a placeholder, as the rows are)."""
+    mirror = view.mirror
+    rows = cursor_rows(cursor, mirror.max_dim0 if view.initialized else mirror.max_size)
+    held = view.initialized and "episode" in mirror.schema
+    if isinstance(cursor, tuple) and held:
+        episode = mirror.views.get("episode")[cursor].reshape(lead)
+        run = mirror.views.get("run")[cursor].reshape(lead)
+        env = mirror.views.get("env")[cursor].reshape(lead) if td.get("env", None) is None else env
+    elif held and bool((rows < mirror.max_dim0).all()):
+        episode = mirror.lead(mirror.views.get("episode"))[rows]
+        run = mirror.lead(mirror.views.get("run"))[rows]
+    else:
+        episode = torch.full(lead, -1, dtype=torch.long)
+        run = torch.full(lead, -1, dtype=torch.long)
+    return episode, run, env
+
+
+def _env_column(view: StoreView, data: TensorDictBase, batch: torch.Size) -> tuple[torch.Tensor, list[str]]:
+    """The env codes of the rows, and the names among them the store must register (codes already given)."""
+    env = data.get("env", None)
+    if env is None:
+        return torch.full(batch, view.env_code, dtype=torch.long), []
+    names = env_names_of(env, batch.numel())
+    if names is not None:
+        known = list(view.env_names)
+        new = [x for x in dict.fromkeys(names) if x not in known]
+        for name in new:
+            if not isinstance(name, str) or not name:
+                raise TypeError(f"An environment name must be a non-empty string, got {name!r}.")
+        table = {x: i for i, x in enumerate(known + new)}
+        return torch.tensor([table[x] for x in names], dtype=torch.long).reshape(batch), new
+    env = torch.as_tensor(env)
+    if env.dtype.is_floating_point or env.dtype == torch.bool:
+        raise ValueError(f"Key 'env' must hold integer env codes or names, got dtype {env.dtype}.")
+    env = env.reshape(batch).long()
+    bad = (env < UNKNOWN_ENV) | (env >= len(view.env_names))
+    if bad.any():
+        raise ValueError(
+            f"Key 'env' holds codes {env[bad].unique().tolist()} unknown to this store "
+            f"(known: {dict(enumerate(view.env_names))}). Use storage.env_code(name, create=True)."
+        )
+    return env, []
+
+
+def _episode_inputs(view: StoreView, data: TensorDictBase, n: int) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """What global episode ids are drawn from: done flags and collector ``traj_ids`` (``(done, traj, continue_open)``)."""
+    done = data.get(DONE_KEY, None)
+    done = np.zeros(n, dtype=bool) if done is None else done.reshape(n, -1).any(-1).cpu().numpy()
+    traj = data.get(TRAJ_KEY, None)
+    if traj is not None and traj.numel() != n:  # per-step ids of whole stored items: their first
+        traj = traj.reshape(n, -1)[:, 0] if traj.numel() % n == 0 else None
+    traj = traj.reshape(n).long().cpu().numpy() if traj is not None else None
+    if view.ndim == 1:
+        return done, traj, True
+    # [items, time...] layouts: each item is its own stream; nothing continues across writes
+    if traj is None:
+        per_item = done.reshape(data.shape[0], -1)
+        seg = np.cumsum(per_item, 1) - per_item
+        traj = (np.arange(per_item.shape[0])[:, None] * (per_item.shape[1] + 1) + seg).reshape(-1)
+    return done, traj, False
+
+
+# -- checks against the store -----------------------------------------------------------
+
+
+def check_constants(view: StoreView, found: dict[str, Any]) -> dict[str, Any]:
+    """The non-tensor entries of a write against the store's; returns the new ones."""
+    schema, constants = view.mirror.schema, view.constants
+    new = {}
+    for path, value in found.items():
+        key = _backend.path_to_key(path)
+        if schema is not None and path in schema:
+            raise TypeError(
+                f"Key {key!r} holds a non-tensor value ({value!r}), but the store at {view.path!r} holds it "
+                f"as a tensor of dtype {schema[path]['dtype']}; every write must keep a key's kind."
+            )
+        if path not in constants:
+            new[path] = value
+        elif constants[path] != value or type(constants[path]) is not type(value):
+            raise ValueError(
+                f"Key {key!r} holds {value!r}, but the store at {view.path!r} holds {constants[path]!r} "
+                f"for it. ZarrStorage keeps a non-tensor entry as one value shared by every row (in the "
+                f"store's metadata, as LazyMemmapStorage does); store per-row values as a tensor (e.g. "
+                f"integer codes), or use another store."
+            )
+    missing = [p for p in constants if p not in found]
+    if missing and schema is not None:
+        raise KeyError(
+            f"The data does not match the schema of the store at {view.path!r}: missing non-tensor keys "
+            f"{[_backend.path_to_key(p) for p in missing]} (held as {[constants[p] for p in missing]}). "
+            f"Every write must carry the keys the store holds."
+        )
+    return new
+
+
+def matches_schema(view: StoreView, data: TensorDictBase) -> bool:
+    """Whether ``data`` holds exactly the store's tensor keys, dtypes and row shapes (no constants)."""
+    fast = view.mirror.key_specs
+    if fast is None or view.constants:
+        return False
+    seen = 0
+    dims = 1 + len(view.mirror.inner_shape)
+    # one dict lookup and two comparisons per leaf; a non-tensor leaf is a leaf here (never in ``fast``)
+    for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
+        spec = fast.get(key)
+        if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
+            return False
+        seen += 1
+    return seen == len(fast)
+
+
+def validate(view: StoreView, data: TensorDictBase, single: bool) -> list[str]:
+    """Raises, naming the key, on a dtype / shape change; returns the paths of new keys."""
+    if matches_schema(view, data):
+        return []
+    check_user_keys(data.keys(include_nested=True), allowed=(DataKind.TENSOR_KEY, DataKind.PYTREE_KEY))
+    if view.mirror.schema is None:
+        for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
+            if not isinstance(value, torch.Tensor):
+                raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
+            _backend.torch_dtype_name(value.dtype)
+            _backend.key_to_path(key)
+        return []
+    schema = {p: spec for p, spec in view.mirror.schema.items() if p not in TAG_KEYS}
+    new, missing = check_against(schema, data, data.batch_dims, repr(view.path))
+    if missing:
+        raise KeyError(
+            f"The TensorDict does not match the schema of the store at {view.path!r}: missing keys "
+            f"{[_backend.path_to_key(p) for p in missing]}. Every write must carry the keys the "
+            f"store holds (new keys may be added)."
+        )
+    return new
+
+
+def _stack_trees(items: list) -> Any:
+    from torch.utils._pytree import tree_map
+
+    first = items[0]
+    if isinstance(first, torch.Tensor):
+        return torch.stack(items, 0)
+    return tree_map(lambda *xs: torch.stack(xs, 0), first, *items[1:])
