@@ -30,6 +30,7 @@ import zarr
 from .. import _backend
 from ..errors import IntegrityError, Problem
 from ..format import BACKUP_DIR, FORMAT_MARKER, dims, numel, writing_config
+from ..journal import replay_journal
 from .arrays import disagreement
 from .attributes import bad_attributes, check_attributes, is_int, unsafe_path
 from .capacity import capacity_problem
@@ -300,10 +301,8 @@ class _Mend:
 
     def replay(self, journal: dict) -> dict:
         """Redoes the pending journal's overwrite; the attributes it led to."""
-        from ..commit import CommitEngine  # until storage/journal.py (replay_journal) is committed
-
         with writing_config():
-            attrs = CommitEngine.replay_journal(zarr.open_group(self.store, mode="r+", zarr_format=3), journal)
+            attrs = replay_journal(zarr.open_group(self.store, mode="r+", zarr_format=3), journal)
         self.actions.append(f"replayed the pending journal (chunks {journal['chunks']})")
         return attrs
 
