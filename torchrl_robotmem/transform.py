@@ -221,9 +221,9 @@ class RecallTransform(Transform):
         """``filter.one_per_episode``: the ``k`` goals come from ``k`` different episodes."""
         return self.filter.one_per_episode
 
-    # -- recall ---------------------------------------------------------------
+    # -- priors ---------------------------------------------------------------
 
-    def _recall(self, goals: torch.Tensor) -> TensorDictBase:
+    def _priors(self, goals: torch.Tensor) -> TensorDictBase:
         """Recalled entries for goals ``[*B, goal_dim]``, as a TensorDict of batch ``[*B]``."""
         batch = goals.shape[:-1]
         flat = goals.reshape(-1, goals.shape[-1])
@@ -323,12 +323,12 @@ class RecallTransform(Transform):
         reset = self._reset_mask(tensordict, batch)
         cache = self._cache
         if cache is None or cache.batch_size != batch or reset is None or bool(reset.all()):
-            self._cache = self._recall(goals)
+            self._cache = self._priors(goals)
         elif bool(reset.any()):
             # A new cache, not an in-place update: earlier steps may still hold
             # views of the old one.
             cache = cache.clone()
-            cache[reset] = self._recall(goals[reset])
+            cache[reset] = self._priors(goals[reset])
             self._cache = cache
         return self._write(tensordict_reset)
 
@@ -343,12 +343,12 @@ class RecallTransform(Transform):
         if cache is None or cache.batch_size != next_tensordict.batch_size:
             # Stepped without a reset through this transform (e.g. appended to a
             # running env): recall for the current goal now.
-            self._cache = self._recall(next_tensordict.get(self.in_keys[0]))
+            self._cache = self._priors(next_tensordict.get(self.in_keys[0]))
         return self._write(next_tensordict)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Recalls for every row of ``tensordict[in_key]`` (stateless; replay buffers, offline use)."""
-        return tensordict.update(self._recall(tensordict.get(self.in_keys[0])))
+        return tensordict.update(self._priors(tensordict.get(self.in_keys[0])))
 
     def _write(self, tensordict: TensorDictBase) -> TensorDictBase:
         # Clones are a few hundred bytes; handing out the cached tensors would
