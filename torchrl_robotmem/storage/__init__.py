@@ -1,15 +1,22 @@
 """Persistent TorchRL storage on Zarr: :class:`ZarrStorage` and its parts.
 
-One job a module, as TorchRL splits storages, writers and checkpointers:
+One job a module, as TorchRL splits storages, writers and checkpointers
+(``docs/storage.md``, "Map of storage/", says which way a write and an open go):
 
-* :mod:`.zarr_storage`: :class:`ZarrStorage`, the public class, a composition of
-* :mod:`._backend`: the store handle (paths, URLs, the writer lock, codecs, dtypes);
-* :mod:`.schema`: the row schema, data kinds and the packed RAM mirror;
-* :mod:`.tags`: episode / run / env tags (pure tensor functions);
-* :mod:`.commit`: the commit engine with its journal and background thread;
+* :mod:`.zarr_storage`: :class:`ZarrStorage`, the TorchRL ``Storage`` contract, a composition of
+* :mod:`.handle`: the store handle (store, group, writer lock, format check, in-process handover);
+* :mod:`.planner`: a write validated and normalised into a plan, without side effects;
+* :mod:`.mirror`: the packed RAM mirror (allocation, loading, the chunk snapshots commits write);
+* :mod:`.schema`: column specs, data kinds, the packed layout, the arrays of a schema;
+* :mod:`.tags` and :mod:`.registry`: episode / run / env tags (pure functions) and the env table and counters;
+* :mod:`.commit`: the commit engine (dirty chunks, background thread, ``flush``), writing through
+  :mod:`.journal` (the redo journal) and :mod:`._commit_worker` (the commit worker process);
+* :mod:`.format`, :mod:`._backend`, :mod:`.errors`: the on-disk format, store plumbing, error types;
+* :mod:`.integrity`: the checks made at open, ``verify`` and ``repair``;
 * :mod:`.writer_sync`: the only module touching TorchRL writer internals;
 * :mod:`.checkpointer`: :class:`ZarrCheckpointer`;
-* :mod:`.lifecycle`: flushing at process end and on SIGTERM.
+* :mod:`.lifecycle`: flushing at process end and on SIGTERM;
+* :mod:`.columns`: reading one column of any TorchRL tensor storage.
 """
 from __future__ import annotations
 

@@ -46,8 +46,8 @@ class ZarrCheckpointer(StorageCheckpointerBase):
         storage.flush()
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
-        meta = {"store": storage.path, "len": len(storage), "write_count": storage._write_count, "copy": None}
-        local = storage._local_dir
+        meta = {"store": storage.path, "len": len(storage), "write_count": storage.write_count, "copy": None}
+        local = storage.local_dir
         if local is not None:
             _link_tree(Path(local), path / _COPY)
             meta["copy"] = _COPY
@@ -65,7 +65,7 @@ class ZarrCheckpointer(StorageCheckpointerBase):
             meta = json.load(f)
         if meta["store"] == storage.path:
             # The store holds the newest state, which may be ahead of the checkpoint.
-            storage._restore_writers(force=True)
+            storage.resume_writers()
             return
         if not meta.get("copy"):
             raise ValueError(
@@ -73,7 +73,5 @@ class ZarrCheckpointer(StorageCheckpointerBase):
                 f"the buffer's storage is {storage.path!r}. Build the buffer with "
                 f"ZarrStorage({meta['store']!r}) to resume from it."
             )
-        from .zarr_storage import ZarrStorage
-
-        source = ZarrStorage(path / meta["copy"], read_only=True)
+        source = type(storage)(path / meta["copy"], read_only=True)
         storage.load_state_dict(source.state_dict())

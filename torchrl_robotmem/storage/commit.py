@@ -41,7 +41,7 @@ from zarr.core.sync import sync as zarr_sync
 from . import _backend
 from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
 from .format import writing_config
-from .journal import journal_chunks, replay_journal, write_journal
+from .journal import replay_journal, write_journal
 
 __all__ = ["CommitEngine"]
 
@@ -74,7 +74,7 @@ class CommitEngine:
                  name: str, worker_path: str | None = None) -> None:
         self.mirror = mirror
         self.record = record
-        self.writer_lock: Any = None  # the store's writer lock: the worker gets a copy of its descriptor
+        self.handle: Any = None  # the store's handle: the worker gets a copy of its writer lock's descriptor
         self.group = group
         self.commit_interval = float(commit_interval)
         self.background = bool(background)
@@ -162,7 +162,7 @@ class CommitEngine:
         Another handle, or this process before the switch, may have written the
         store since the worker last saw it: it reopens the group and its arrays.
         """
-        fd = getattr(self.writer_lock, "_fd", None)
+        fd = getattr(getattr(self.handle, "lock", None), "_fd", None)
         self._worker.request({"op": "open", "path": self.worker_path}, fds=[fd] if fd is not None else [])
         self._worker_synced = True
 
@@ -217,12 +217,7 @@ class CommitEngine:
         self._resync_from_disk()
 
     def _resync_from_disk(self) -> None:
-        group = zarr.open_group(self.group.store, mode="r+", zarr_format=3)
-        attrs = group.attrs.asdict()
-        if attrs.get("journal"):
-            with writing_config():
-                attrs = replay_journal(group, attrs["journal"])
-        self.group = group
+        self.group, attrs = settled_group(self.group.store)
         with self.cv:
             self.committed_len = max(self.committed_len, int(attrs.get("len", 0)))
             self.committed_write_count = max(self.committed_write_count, int(attrs.get("write_count", 0)))
@@ -386,27 +381,7 @@ class CommitEngine:
 
     def _commit_in_worker(self, snapshots: dict, meta: dict | None, overwrite: bool) -> None:
         """Sends the packed snapshots to the commit worker, which splits and writes them."""
-        mirror = self.mirror
-        layout = next(iter(snapshots.values()))[1] if snapshots else None  # None: a metadata-only commit
-        header = {
-            "op": "commit",
-            "path": self.worker_path,
-            "chunk_rows": mirror.chunk_rows,
-            "row_bytes": layout.row_bytes if layout is not None else 0,
-            "inner": list(mirror.inner_shape or ()),
-            "fields": [[path, off, nbytes, _backend.numpy_dtype(dtype).str, list(shape)]
-                       for path, off, nbytes, dtype, shape in (layout.fields if layout is not None else ())
-                       if path in mirror.schema],
-            "chunks": [[c, int(snap[0].shape[0])] for c, snap in snapshots.items()],
-            "overwrite": overwrite,
-            "meta": meta,
-        }
-        if overwrite:
-            header["journal_arrays"] = [
-                [path, [mirror.max_dim0, *mirror.inner_shape, *spec["shape"]],
-                 _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).str]
-                for path, spec in mirror.schema.items()
-            ]
+        header = worker_header(self.mirror, self.worker_path, snapshots, meta, overwrite)
         if not self._worker_synced:
             self._worker_open()
         self._worker.request(header, [snap[0].numpy() for snap in snapshots.values()])  # may raise CommitWorkerGone
@@ -419,18 +394,7 @@ class CommitEngine:
 
     def _write_chunks(self, payload: dict[int, dict[str, np.ndarray]], prefix: str = "") -> None:
         """Writes chunks of every array in one event-loop round trip (about 1.4x a loop of writes)."""
-        rows = self.mirror.chunk_rows
-        writes = []
-        for c, arrays in payload.items():
-            lo = c * rows
-            for path, values in arrays.items():
-                arr = self._array(prefix + path)
-                writes.append(arr._async_array.setitem(slice(lo, lo + len(values)), values))
-
-        async def _all():
-            await asyncio.gather(*writes)
-
-        zarr_sync(_all())
+        write_chunks(self._array, payload, self.mirror.chunk_rows, prefix)
 
     # -- journal ------------------------------------------------------------------
 
@@ -439,10 +403,6 @@ class CommitEngine:
         m = self.mirror
         write_journal(self.group, self.arrays, payload, meta, schema=m.schema, size=m.max_dim0,
                       inner_shape=m.inner_shape, chunk_rows=m.chunk_rows, write_chunks=self._write_chunks)
-
-    # kept until integrity's repair calls journal.replay_journal (see docs/storage.md)
-    journal_chunks = staticmethod(journal_chunks)
-    replay_journal = staticmethod(replay_journal)
 
     # -- durability ---------------------------------------------------------------
 
@@ -480,34 +440,95 @@ class CommitEngine:
 
     def not_durable(self) -> str:
         """Which rows the store would lose now: ``"N rows (write numbers A to B)"`` and in-place changes."""
-        mirror = self.mirror
         with self.cv:
-            written = int(self.record()["write_count"])
-            committed = self.committed_write_count
-            in_place = sorted(c for c, lo in self.dirty.items() if lo < mirror.dim0(self.committed_len))
-            rows = mirror.chunk_rows or 0
-        size = mirror.max_size
-        first = max(committed, written - size)  # older writes were overwritten in RAM by the ring
-        if written > first:
-            where = (f"at storage index write number % {size}" if written > size
-                     else "the same storage indices")
-            return f"{written - first} rows (write numbers {first} to {written - 1}, {where})"
-        if in_place:
-            return "in-place changes to the stored rows " + ", ".join(
-                f"{c * rows} to {(c + 1) * rows - 1}" for c in in_place)
-        return "no rows"
+            return not_durable(self.mirror, int(self.record()["write_count"]), self.committed_write_count,
+                               [c for c, lo in self.dirty.items() if lo < self.mirror.dim0(self.committed_len)])
 
     def raise_error(self, *, closing: bool = False) -> None:
         """Raises the last commit failure, saying which rows are not durable (or lost, when closing)."""
         err = self.error
         if err is not None:
-            # a commit worker's error already reads "<its type>: <message>"
-            what = str(err) if isinstance(err, CommitWorkerError) else f"{type(err).__name__}: {err}"
-            if closing:
-                advice = (f"{self.not_durable()} could not be written and are lost: this handle is closed. "
-                          f"Fix the cause (disk space, permissions) and write them again")
-            else:
-                advice = (f"{self.not_durable()} are not durable: they are kept in memory. Fix the cause "
-                          f"(disk space, permissions), then call flush() on this storage (or close() it, or "
-                          f"open ZarrStorage on the same path again) to write them")
-            raise RuntimeError(f"The background writer of {self.name!r} failed: {what}. {advice}.") from err
+            raise failure(self.name, err, self.not_durable(), closing=closing) from err
+
+
+def worker_header(mirror: Any, path: str, snapshots: dict, meta: dict | None, overwrite: bool) -> dict:
+    """The commit worker's request for packed chunk ``snapshots`` (see :mod:`._commit_worker`)."""
+    layout = next(iter(snapshots.values()))[1] if snapshots else None  # None: a metadata-only commit
+    header = {
+        "op": "commit",
+        "path": path,
+        "chunk_rows": mirror.chunk_rows,
+        "row_bytes": layout.row_bytes if layout is not None else 0,
+        "inner": list(mirror.inner_shape or ()),
+        "fields": [[p, off, nbytes, _backend.numpy_dtype(dtype).str, list(shape)]
+                   for p, off, nbytes, dtype, shape in (layout.fields if layout is not None else ())
+                   if p in mirror.schema],
+        "chunks": [[c, int(snap[0].shape[0])] for c, snap in snapshots.items()],
+        "overwrite": overwrite,
+        "meta": meta,
+    }
+    if overwrite:
+        header["journal_arrays"] = [
+            [p, [mirror.max_dim0, *mirror.inner_shape, *spec["shape"]],
+             _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).str]
+            for p, spec in mirror.schema.items()
+        ]
+    return header
+
+
+def not_durable(mirror: Any, written: int, committed: int, in_place: list[int]) -> str:
+    """Which rows a store would lose: ``"N rows (write numbers A to B)"``, or its in-place changes.
+
+    Args:
+        mirror (RamMirror): the store's rows.
+        written (int): the write count so far.
+        committed (int): the write count of the last commit record.
+        in_place (list): dirty chunks holding committed rows.
+    """
+    size, rows = mirror.max_size, mirror.chunk_rows or 0
+    first = max(committed, written - size)  # older writes were overwritten in RAM by the ring
+    if written > first:
+        where = f"at storage index write number % {size}" if written > size else "the same storage indices"
+        return f"{written - first} rows (write numbers {first} to {written - 1}, {where})"
+    if in_place:
+        return "in-place changes to the stored rows " + ", ".join(
+            f"{c * rows} to {(c + 1) * rows - 1}" for c in sorted(in_place))
+    return "no rows"
+
+
+def failure(name: str, err: BaseException, rows: str, *, closing: bool) -> RuntimeError:
+    """The error a failed commit raises in the foreground, saying which ``rows`` are not durable (or lost)."""
+    # a commit worker's error already reads "<its type>: <message>"
+    what = str(err) if isinstance(err, CommitWorkerError) else f"{type(err).__name__}: {err}"
+    if closing:
+        advice = (f"{rows} could not be written and are lost: this handle is closed. "
+                  f"Fix the cause (disk space, permissions) and write them again")
+    else:
+        advice = (f"{rows} are not durable: they are kept in memory. Fix the cause "
+                  f"(disk space, permissions), then call flush() on this storage (or close() it, or "
+                  f"open ZarrStorage on the same path again) to write them")
+    return RuntimeError(f"The background writer of {name!r} failed: {what}. {advice}.")
+
+
+def settled_group(store: Any) -> tuple[Any, dict]:
+    """The store's group opened for writing, a pending journal replayed first; and its attributes."""
+    group = zarr.open_group(store, mode="r+", zarr_format=3)
+    attrs = group.attrs.asdict()
+    if attrs.get("journal"):
+        with writing_config():
+            attrs = replay_journal(group, attrs["journal"])
+    return group, attrs
+
+
+def write_chunks(array: Any, payload: dict[int, dict[str, np.ndarray]], rows: int, prefix: str = "") -> None:
+    """Writes ``payload`` (chunk id -> array path -> rows) to the arrays ``array(path)`` opens, all at once."""
+    writes = []
+    for c, arrays in payload.items():
+        lo = c * rows
+        for path, values in arrays.items():
+            writes.append(array(prefix + path)._async_array.setitem(slice(lo, lo + len(values)), values))
+
+    async def _all():
+        await asyncio.gather(*writes)
+
+    zarr_sync(_all())

@@ -22,16 +22,16 @@ from typing import Any
 
 import numpy as np
 import torch
-import torchrl
 from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
 from . import _backend, integrity, lifecycle, writer_sync
-from ._backend import FORMAT_MARKER, FORMAT_VERSION
+from ._backend import FORMAT_MARKER
 from .checkpointer import ZarrCheckpointer
 from .commit import CommitEngine
 from .format import writing_config
+from .handle import StoreHandle
 from .journal import replay_journal
 from .mirror import RamMirror
 from .planner import DROPPED_KEYS, StoreView, WritePlan, check_constants, cursor_rows, plan_write, validate
@@ -43,9 +43,6 @@ __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
 _DONE_KEY = ("next", "done")
 _TRUNCATED_KEY = ("next", "truncated")
 
-# The writable handle of each store opened for writing in this process. A new
-# writable handle on the same store takes the writer over from the old one.
-_OPEN_WRITERS: dict[str, weakref.ref] = {}
 
 
 class ZarrStorage(LazyTensorStorage):
@@ -194,20 +191,19 @@ class ZarrStorage(LazyTensorStorage):
             )
         self._on_damage = on_damage
         self._commit_process = commit_process
-        self.path = _backend.normalize_path(path)
-        self.read_only = bool(read_only)
+        self._handle = StoreHandle(path, read_only=read_only, storage_options=storage_options)
+        self._handle.flush = self.flush  # a newer writable handle in this process flushes this one first
+        self.path = self._handle.path
+        self.read_only = self._handle.read_only
         self._storage_options = storage_options
         self._compressor = compressor
         self._compression_level = int(compression_level)
-        self._lock_file = None
-        self._closed = False
-        self._retired_by: str | None = None
         # what storage.get() (hence rb.sample()) leaves out: the tags, unless asked for
         self._hidden = () if sample_tags else TAG_KEYS
         try:
-            previous = self._claim_writer() if not self.read_only else None
+            previous = self._handle.claim() if not self.read_only else None
         except BaseException:
-            self._closed = True  # never registered: the writer stays with the earlier handle
+            self._handle.closed = True  # never registered: the writer stays with the earlier handle
             raise
         try:
             self._open(max_size, env=env, ndim=int(ndim), chunk_rows=chunk_rows, device=device,
@@ -215,48 +211,41 @@ class ZarrStorage(LazyTensorStorage):
         except BaseException:
             self._release()
             if previous is not None:
-                previous._take_back_writer(self)
+                previous.take_back(self._handle)
             raise
 
     # -- opening ----------------------------------------------------------------------
 
     def _use_worker(self, background: bool) -> bool:
-        if self.read_only or not background or self._local_dir is None:
+        if self.read_only or not background or self._handle.local_dir is None:
             return False
         if self._commit_process is not None:
             return bool(self._commit_process)
         return os.environ.get("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "1") != "0"
 
     def _open(self, max_size, *, env, ndim, chunk_rows, device, compilable, commit_interval, background) -> None:
-        store, self._local_dir = _backend.open_store(
-            self.path, read_only=self.read_only, storage_options=self._storage_options
-        )
-        self._store = store
-        if self._local_dir is not None and not self.read_only:
-            self._lock_file = _backend.WriterLock(self._local_dir)
-            _backend.remove_partial_files(self._local_dir)  # left by a writer killed mid-chunk
-        elif not self.read_only and isinstance(self.path, str) and _backend.is_url(self.path):
-            self._lock_file = _backend.url_writer_lock(self.path, self._storage_options)
-        self._group = _backend.open_group(store, read_only=self.read_only)
-        attrs = self._group.attrs.asdict()
+        handle = self._handle
+        handle.open()
+        store = handle.store
+        attrs = handle.group.attrs.asdict()
         if attrs.get(FORMAT_MARKER) is None:
-            self._create_new(attrs, max_size, chunk_rows, ndim)
-            attrs = self._group.attrs.asdict()
-        self._check_format(attrs)
+            handle.create(attrs, max_size, chunk_rows, ndim)
+            attrs = handle.group.attrs.asdict()
+        handle.check_format(attrs)
         # before anything is read or written: a damaged store raises, naming the array and chunk
         grows = max_size is not None and int(max_size) != attrs.get("max_size")
-        attrs = integrity.check_open(self._group, attrs, store=store, local_dir=self._local_dir, path=self.path,
+        attrs = integrity.check_open(self._handle.group, attrs, store=store, local_dir=self._handle.local_dir, path=self.path,
                                      read_only=self.read_only, on_damage=self._on_damage,
                                      decode=not self.read_only and (bool(attrs.get("journal")) or grows))
         stored_max = int(attrs["max_size"])
         super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
         self._mirror = RamMirror(stored_max, ndim=self.ndim, device=self.device, length=self.__len__)
         self._engine = CommitEngine(
-            self._mirror, self._group, record=self._meta_snapshot, commit_interval=commit_interval,
+            self._mirror, self._handle.group, record=self._meta_snapshot, commit_interval=commit_interval,
             background=background, name=str(self.path),
-            worker_path=str(self._local_dir) if self._use_worker(background) else None,
+            worker_path=str(self._handle.local_dir) if self._use_worker(background) else None,
         )
-        self._engine.writer_lock = self._lock_file
+        self._engine.handle = handle  # the worker gets a copy of its writer lock's descriptor
         self._sync_attrs(attrs)
         # This session's state.
         self._run: int | None = None  # allocated at the first write
@@ -273,62 +262,11 @@ class ZarrStorage(LazyTensorStorage):
         if env is not None and not self.read_only:
             self.env = env
         if not self.read_only:
-            self._engine.arrays.update(integrity.writing_handles(self._group, self._mirror.schema or ()))
+            self._engine.arrays.update(integrity.writing_handles(self._handle.group, self._mirror.schema or ()))
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._mirror.schema is not None:
                 self._close_open_episodes()
                 self.flush()
-
-    def _check_format(self, attrs: dict) -> None:
-        marker = attrs.get(FORMAT_MARKER)
-        version = marker.get("format_version") if isinstance(marker, dict) else None
-        if not isinstance(version, int) or isinstance(version, bool):
-            raise ValueError(f"{self.path!r} has a malformed {FORMAT_MARKER!r} attribute (format_version {version!r}).")
-        if int(marker["format_version"]) > FORMAT_VERSION:
-            raise ValueError(
-                f"{self.path!r} was written in format version {marker['format_version']} by "
-                f"torchrl_robotmem {marker.get('library_version')}; this version reads format "
-                f"<= {FORMAT_VERSION}. Upgrade torchrl_robotmem to open it."
-            )
-
-    def _create_new(self, attrs: dict, max_size: int | None, chunk_rows: int | None, ndim: int) -> None:
-        if self.read_only:
-            raise ValueError(f"{self.path!r} is not a torchrl_robotmem store (no {FORMAT_MARKER!r} attribute).")
-        if attrs or any(True for _ in self._group.keys()):
-            raise ValueError(
-                f"{self.path!r} is a Zarr group that was not written by torchrl_robotmem "
-                f"(no {FORMAT_MARKER!r} attribute). Refusing to write into it."
-            )
-        if max_size is None:
-            raise ValueError(
-                f"No store exists at {self.path!r} yet: pass max_size to create one, e.g. "
-                f"ZarrStorage({self.path!r}, max_size=1_000_000)."
-            )
-        self._group.update_attributes(
-            {
-                FORMAT_MARKER: {
-                    "format_version": FORMAT_VERSION,
-                    "library_version": _library_version(),
-                    "torchrl_version": torchrl.__version__,
-                    "zarr_version": _backend.zarr.__version__,
-                    "integrity": dict(integrity.MARKER),  # checksummed chunks, all-zero ones written too
-                },
-                "max_size": int(max_size),
-                "ndim": int(ndim),
-                "inner_shape": None,
-                "chunk_rows": int(chunk_rows) if chunk_rows is not None else None,
-                "schema": None,
-                "kind": None,
-                "len": 0,
-                "cursor": 0,
-                "last_cursor": -1,
-                "write_count": 0,
-                "episode_next": 0,
-                "runs": 0,
-                "env_names": [],
-                "journal": None,
-            }
-        )
 
     def _sync_attrs(self, attrs: dict) -> None:
         """Persistent bookkeeping, mirrored from the group attributes."""
@@ -344,49 +282,6 @@ class ZarrStorage(LazyTensorStorage):
         self._write_count = int(attrs.get("write_count", 0))
         self._writer_cursor = int(attrs.get("cursor", 0))
         self._engine.set_committed(attrs)
-
-    # -- writer handover within a process -------------------------------------------------
-
-    def _claim_writer(self) -> ZarrStorage | None:
-        """Takes the writer over from an earlier writable handle on the same store in this process.
-
-        Re-running a notebook cell (``rb = ...ZarrStorage(path)``) or dropping a
-        handle that an index still refers to must not lock the user out of their
-        own store: the earlier handle is flushed and becomes a read-only
-        snapshot. Returns it (to hand the writer back if this open fails).
-        """
-        key = str(self.path)
-        ref = _OPEN_WRITERS.get(key)
-        other = ref() if ref is not None else None
-        if other is not None and (other._closed or other.read_only):
-            other = None
-        if other is not None:
-            other._hand_over_writer()  # raises if it cannot write its rows: it keeps them, and the writer
-        _OPEN_WRITERS[key] = weakref.ref(self)
-        return other
-
-    def _hand_over_writer(self) -> None:
-        with lifecycle.critical():
-            self.flush()
-            self._retired_by = "a newer writable ZarrStorage on the same store in this process"
-            self._closed = True
-            if self._lock_file is not None:
-                self._lock_file.release()
-                self._lock_file = None
-
-    def _take_back_writer(self, failed: ZarrStorage) -> None:
-        """Undoes :meth:`_hand_over_writer` when the newer handle failed to open."""
-        key = str(self.path)
-        ref = _OPEN_WRITERS.get(key)
-        if ref is None or ref() is None or ref() is failed:
-            _OPEN_WRITERS[key] = weakref.ref(self)
-        if self._local_dir is not None:
-            try:
-                self._lock_file = self._engine.writer_lock = _backend.WriterLock(self._local_dir)
-            except RuntimeError:
-                return  # another process took it meanwhile: stay a snapshot
-        self._retired_by = None
-        self._closed = False
 
     # -- loading -----------------------------------------------------------------------------
 
@@ -407,7 +302,7 @@ class ZarrStorage(LazyTensorStorage):
         self.max_size = self._mirror.max_size = new_max
         if self._mirror.schema is not None:
             for path in self._mirror.schema:
-                arr = self._group[path]
+                arr = self._handle.group[path]
                 arr.resize((self._mirror.max_dim0, *arr.shape[1:]))
         self._engine.reset_arrays()
         self._engine.update_attrs({"max_size": new_max})
@@ -417,7 +312,7 @@ class ZarrStorage(LazyTensorStorage):
         journal = attrs.get("journal")
         if journal and not self.read_only:
             with writing_config():
-                attrs = replay_journal(self._group, journal)
+                attrs = replay_journal(self._handle.group, journal)
             self._sync_attrs(attrs)
         elif journal:  # a reader applies the pending journal in RAM only
             attrs = {**attrs, **journal["meta"]}
@@ -425,11 +320,11 @@ class ZarrStorage(LazyTensorStorage):
         n = int(attrs.get("len", 0))
         n0 = self._mirror.dim0(n)
         self._allocate()
-        self._mirror.load(self._group, n0, store_path=self.path, read_only=self.read_only)
+        self._mirror.load(self._handle.group, n0, store_path=self.path, read_only=self.read_only)
         if journal and self.read_only:
-            self._mirror.apply_journal(self._group, journal)
+            self._mirror.apply_journal(self._handle.group, journal)
         if self.read_only and n0:
-            self._mirror.reread_overwritten(self._store, self._group, record, n0, store_path=self.path)
+            self._mirror.reread_overwritten(self._handle.store, self._handle.group, record, n0, store_path=self.path)
         if n0:
             # Zarr reads a chunk file that is gone as zeros: one moved away since the open's
             # listing (by `robotmem repair`) is an error here, never zero rows served
@@ -454,7 +349,7 @@ class ZarrStorage(LazyTensorStorage):
         A chunk missing now was read as zeros: an :class:`IntegrityError` naming it
         (``on_damage="warn"``: a warning, and only the rows before it are kept).
         """
-        problems = integrity.missing_after_read(self._group, attrs, store=self._store, local_dir=self._local_dir)
+        problems = integrity.missing_after_read(self._handle.group, attrs, store=self._handle.store, local_dir=self._handle.local_dir)
         if not problems:
             return n
         action = "A chunk file disappeared while the rows were read (is `robotmem repair` running?); no row was served."
@@ -549,7 +444,37 @@ class ZarrStorage(LazyTensorStorage):
     @property
     def local_dir(self) -> str | None:
         """The store's local directory, or ``None`` for in-memory and remote (URL) stores."""
-        return self._local_dir
+        return self._handle.local_dir
+
+    @property
+    def write_count(self) -> int:
+        """Transitions written to this store since it was created (or emptied): the writer's count."""
+        return self._write_count
+
+    def resume_writers(self) -> None:
+        """Puts the writers of the buffers on this storage back to the store's cursor and write count."""
+        self._restore_writers(force=True)
+
+    # The store handle's state, under the names the tests and benchmarks read.
+    @property
+    def _closed(self) -> bool:
+        return self._handle.closed
+
+    @property
+    def _lock_file(self) -> Any:
+        return self._handle.lock
+
+    @property
+    def _group(self) -> Any:
+        return self._handle.group
+
+    @property
+    def _store(self) -> Any:
+        return self._handle.store
+
+    @property
+    def _local_dir(self) -> str | None:
+        return self._handle.local_dir
 
     @property
     def schema(self) -> dict[str, dict] | None:
@@ -559,7 +484,7 @@ class ZarrStorage(LazyTensorStorage):
 
     def record(self) -> dict[str, Any]:
         """The committed record (the store's group attributes) as plain JSON values."""
-        return self._group.attrs.asdict()
+        return self._handle.group.attrs.asdict()
 
     def view(self) -> TensorDictBase:
         """Every row slot of the RAM mirror as a TensorDict of views, ``max_size`` rows
@@ -704,30 +629,7 @@ class ZarrStorage(LazyTensorStorage):
         self._bump_mutation_revision()
 
     def _check_writable(self) -> None:
-        if self.read_only and getattr(self, "_received", False):
-            raise RuntimeError(
-                f"This ZarrStorage ({self.path!r}) is read_only: it is the copy another process "
-                f"receives when a ZarrStorage is pickled, and a store has one writer process. Do not pass "
-                f"replay_buffer= to MultiSyncCollector / MultiAsyncCollector: iterate the collector "
-                f"in the writer process and call rb.extend(data), or put the storage in a Ray actor "
-                f"(RayReplayBuffer(storage=partial(ZarrStorage, path, max_size))) and extend through "
-                f"it. See docs/distributed.md."
-            )
-        if self.read_only:
-            raise RuntimeError(
-                f"This ZarrStorage ({self.path!r}) was opened read_only; open it without read_only=True to write."
-            )
-        if self._retired_by is not None:
-            raise RuntimeError(
-                f"This ZarrStorage ({self.path!r}) handed its writer to {self._retired_by}; it "
-                f"is now a read-only snapshot. Write through the newer handle."
-            )
-        if self._closed:
-            raise RuntimeError(
-                f"This ZarrStorage ({self.path!r}) is closed; open ZarrStorage({self.path!r}) again to keep writing."
-            )
-        if self._lock_file is not None:
-            self._lock_file.check()  # an object-store lease can be lost
+        self._handle.check_writable()
         self._engine.raise_error()
 
     def _plan_view(self) -> StoreView:
@@ -803,7 +705,7 @@ class ZarrStorage(LazyTensorStorage):
         for path, spec in schema.items():
             dtype = _backend.torch_dtype(spec["dtype"])
             shape = (self._mirror.max_dim0, *self._mirror.inner_shape, *spec["shape"])
-            self._engine.arrays[path] = self._group.create_array(
+            self._engine.arrays[path] = self._handle.group.create_array(
                 path,
                 shape=shape,
                 chunks=(self._mirror.chunk_rows, *shape[1:]),
@@ -931,22 +833,11 @@ class ZarrStorage(LazyTensorStorage):
             self._release()
 
     def _release(self) -> None:
-        self._closed = True
+        self._handle.closed = True
         engine = getattr(self, "_engine", None)
         if engine is not None:
             engine.close()
-        if getattr(self, "_lock_file", None) is not None:
-            self._lock_file.release()
-            self._lock_file = None
-        ref = _OPEN_WRITERS.get(str(self.path))
-        if ref is not None and ref() is self:
-            del _OPEN_WRITERS[str(self.path)]
-        close = getattr(getattr(self, "_store", None), "close", None)
-        if close is not None:
-            try:
-                close()
-            except Exception:  # noqa: BLE001 - nothing to save in a store being closed
-                pass
+        self._handle.release()
 
     def __enter__(self) -> ZarrStorage:
         return self
@@ -972,17 +863,18 @@ class ZarrStorage(LazyTensorStorage):
         if not self.read_only:
             return len(self)
         saved = dict(self.__dict__)
+        saved_group = self._handle.group
         mirror_state = dict(vars(self._mirror))
         engine_state = {k: v for k, v in vars(self._engine).items() if k in ("group", "committed_len", "committed_write_count")}
         try:
-            group = _backend.open_group(self._store, read_only=True)
+            group = _backend.open_group(self._handle.store, read_only=True)
             attrs = group.attrs.asdict()
-            self._check_format(attrs)
-            attrs = integrity.check_open(group, attrs, store=self._store, local_dir=self._local_dir, path=self.path,
+            self._handle.check_format(attrs)
+            attrs = integrity.check_open(group, attrs, store=self._handle.store, local_dir=self._handle.local_dir, path=self.path,
                                          read_only=True, on_damage=self._on_damage)
             if attrs.get("schema") is None:
                 return 0
-            self._group = self._engine.group = group
+            self._handle.group = self._engine.group = group
             if int(attrs["max_size"]) != self.max_size:  # the writer grew the store
                 self.max_size = self._mirror.max_size = int(attrs["max_size"])
                 self.__dict__.pop("_total_shape_value", None)
@@ -992,6 +884,7 @@ class ZarrStorage(LazyTensorStorage):
         except BaseException:
             # a failed refresh leaves the handle as it was (its rows, its length)
             self.__dict__.update(saved)
+            self._handle.group = saved_group
             vars(self._mirror).update(mirror_state)
             vars(self._engine).update(engine_state)
             raise
@@ -1115,7 +1008,7 @@ class ZarrStorage(LazyTensorStorage):
         out["envs"] = self.env_names
         if self._constants:
             out["constants"] = {str(_backend.path_to_key(p)): v for p, v in self._constants.items()}
-        out["bytes_on_disk"] = _backend.store_size_bytes(self._local_dir)
+        out["bytes_on_disk"] = _backend.store_size_bytes(self._handle.local_dir)
         return out
 
     def __repr__(self) -> str:
@@ -1130,14 +1023,8 @@ class ZarrStorage(LazyTensorStorage):
 
 def _open_read_only(path: str, storage_options: dict | None, device: str) -> ZarrStorage:
     storage = ZarrStorage(path, read_only=True, storage_options=storage_options, device=device)
-    storage._received = True  # a pickled copy: writing through it gets the advice below
+    storage._handle.received = True  # a pickled copy: writing through it gets the advice of check_writable
     return storage
-
-
-def _library_version() -> str:
-    from .. import __version__
-
-    return __version__
 
 
 def _rows_of_state(source: Any) -> TensorDictBase | None:

@@ -1,0 +1,221 @@
+"""The store handle: a store's path, its Zarr store and group, the writer lock, and the in-process writer handover.
+
+A :class:`StoreHandle` opens a store (local directory, ``*.zip``, in-memory or
+URL), takes the writer lock of a writable one, checks the format marker and
+creates a new store's commit record. A store has one writer: within a process,
+a new writable handle on the same store takes the writer over from the earlier
+one (:meth:`StoreHandle.claim`), which is flushed and becomes a read-only
+snapshot, and hands it back if the newer one fails to open
+(:meth:`StoreHandle.take_back`).
+
+Example:
+    >>> from torchrl_robotmem.storage.handle import StoreHandle
+    >>> h = StoreHandle("memory://handle-doc", read_only=False)
+    >>> h.open()
+    >>> h.create({}, max_size=10, chunk_rows=None, ndim=1)
+    >>> h.check_format(h.group.attrs.asdict())
+    >>> h.release()
+"""
+from __future__ import annotations
+
+import weakref
+from collections.abc import Callable
+from typing import Any
+
+import torchrl
+
+from .._version import __version__
+from . import _backend, lifecycle
+from .format import FORMAT_MARKER, FORMAT_VERSION, MARKER
+
+__all__ = ["StoreHandle"]
+
+# The writable handle of each store opened for writing in this process. A new
+# writable handle on the same store takes the writer over from the old one.
+_OPEN_WRITERS: dict[str, weakref.ref] = {}
+
+
+class StoreHandle:
+    """One open store: path, Zarr store and group, writer lock, and its place in the in-process handover.
+
+    Args:
+        path (str or os.PathLike or zarr Store): the store.
+
+    Keyword Args:
+        read_only (bool): open for reading only.
+        storage_options (dict, optional): passed to fsspec for URL stores.
+
+    Example:
+        >>> h = StoreHandle("memory://handle-doc2", read_only=True)
+        >>> h.path, h.closed
+        ('memory://handle-doc2', False)
+    """
+
+    def __init__(self, path: Any, *, read_only: bool, storage_options: dict | None = None) -> None:
+        self.path = _backend.normalize_path(path)
+        self.read_only = bool(read_only)
+        self.storage_options = storage_options
+        self.store: Any = None
+        self.local_dir: str | None = None
+        self.group: Any = None
+        self.lock: Any = None  # the writer lock (a file lock, or an object-store lease)
+        self.closed = False
+        self.retired_by: str | None = None  # set when a newer writable handle took the writer over
+        self.received = False  # the read-only copy a pickled storage arrives as
+        self.flush: Callable[[], None] = lambda: None  # makes the owner's rows durable (before a handover)
+
+    # -- opening ------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Opens the store and its group; a writable local store takes the writer lock first."""
+        self.store, self.local_dir = _backend.open_store(
+            self.path, read_only=self.read_only, storage_options=self.storage_options
+        )
+        if self.local_dir is not None and not self.read_only:
+            self.lock = _backend.WriterLock(self.local_dir)
+            _backend.remove_partial_files(self.local_dir)  # left by a writer killed mid-chunk
+        elif not self.read_only and isinstance(self.path, str) and _backend.is_url(self.path):
+            self.lock = _backend.url_writer_lock(self.path, self.storage_options)
+        self.group = _backend.open_group(self.store, read_only=self.read_only)
+
+    def check_format(self, attrs: dict) -> None:
+        """Raises unless ``attrs`` carry a format marker this version reads."""
+        marker = attrs.get(FORMAT_MARKER)
+        version = marker.get("format_version") if isinstance(marker, dict) else None
+        if not isinstance(version, int) or isinstance(version, bool):
+            raise ValueError(f"{self.path!r} has a malformed {FORMAT_MARKER!r} attribute (format_version {version!r}).")
+        if int(marker["format_version"]) > FORMAT_VERSION:
+            raise ValueError(
+                f"{self.path!r} was written in format version {marker['format_version']} by "
+                f"torchrl_robotmem {marker.get('library_version')}; this version reads format "
+                f"<= {FORMAT_VERSION}. Upgrade torchrl_robotmem to open it."
+            )
+
+    def create(self, attrs: dict, max_size: int | None, chunk_rows: int | None, ndim: int) -> None:
+        """Writes the commit record of a new, empty store (refusing a foreign Zarr group)."""
+        if self.read_only:
+            raise ValueError(f"{self.path!r} is not a torchrl_robotmem store (no {FORMAT_MARKER!r} attribute).")
+        if attrs or any(True for _ in self.group.keys()):
+            raise ValueError(
+                f"{self.path!r} is a Zarr group that was not written by torchrl_robotmem "
+                f"(no {FORMAT_MARKER!r} attribute). Refusing to write into it."
+            )
+        if max_size is None:
+            raise ValueError(
+                f"No store exists at {self.path!r} yet: pass max_size to create one, e.g. "
+                f"ZarrStorage({self.path!r}, max_size=1_000_000)."
+            )
+        self.group.update_attributes(
+            {
+                FORMAT_MARKER: {
+                    "format_version": FORMAT_VERSION,
+                    "library_version": __version__,
+                    "torchrl_version": torchrl.__version__,
+                    "zarr_version": _backend.zarr.__version__,
+                    "integrity": dict(MARKER),  # checksummed chunks, all-zero ones written too
+                },
+                "max_size": int(max_size),
+                "ndim": int(ndim),
+                "inner_shape": None,
+                "chunk_rows": int(chunk_rows) if chunk_rows is not None else None,
+                "schema": None,
+                "kind": None,
+                "len": 0,
+                "cursor": 0,
+                "last_cursor": -1,
+                "write_count": 0,
+                "episode_next": 0,
+                "runs": 0,
+                "env_names": [],
+                "journal": None,
+            }
+        )
+
+    # -- writer handover within a process ----------------------------------------------------
+
+    def claim(self) -> StoreHandle | None:
+        """Takes the writer over from an earlier writable handle on the same store in this process.
+
+        Re-running a notebook cell (``rb = ...ZarrStorage(path)``) or dropping a
+        handle that an index still refers to must not lock the user out of their
+        own store: the earlier handle is flushed and becomes a read-only
+        snapshot. Returns it (to hand the writer back if this open fails).
+        """
+        key = str(self.path)
+        ref = _OPEN_WRITERS.get(key)
+        other = ref() if ref is not None else None
+        if other is not None and (other.closed or other.read_only):
+            other = None
+        if other is not None:
+            other.hand_over()  # raises if it cannot write its rows: it keeps them, and the writer
+        _OPEN_WRITERS[key] = weakref.ref(self)
+        return other
+
+    def hand_over(self) -> None:
+        """Flushes and becomes a read-only snapshot, releasing the writer lock."""
+        with lifecycle.critical():
+            self.flush()
+            self.retired_by = "a newer writable ZarrStorage on the same store in this process"
+            self.closed = True
+            if self.lock is not None:
+                self.lock.release()
+                self.lock = None
+
+    def take_back(self, failed: StoreHandle) -> None:
+        """Undoes :meth:`hand_over` when the newer handle failed to open."""
+        key = str(self.path)
+        ref = _OPEN_WRITERS.get(key)
+        if ref is None or ref() is None or ref() is failed:
+            _OPEN_WRITERS[key] = weakref.ref(self)
+        if self.local_dir is not None:
+            try:
+                self.lock = _backend.WriterLock(self.local_dir)
+            except RuntimeError:
+                return  # another process took it meanwhile: stay a snapshot
+        self.retired_by = None
+        self.closed = False
+
+    # -- writing and closing -------------------------------------------------------------------
+
+    def check_writable(self) -> None:
+        """Raises, saying why and what to do, unless rows may be written through this handle."""
+        if self.read_only and self.received:
+            raise RuntimeError(
+                f"This ZarrStorage ({self.path!r}) is read_only: it is the copy another process "
+                f"receives when a ZarrStorage is pickled, and a store has one writer process. Do not pass "
+                f"replay_buffer= to MultiSyncCollector / MultiAsyncCollector: iterate the collector "
+                f"in the writer process and call rb.extend(data), or put the storage in a Ray actor "
+                f"(RayReplayBuffer(storage=partial(ZarrStorage, path, max_size))) and extend through "
+                f"it. See docs/distributed.md."
+            )
+        if self.read_only:
+            raise RuntimeError(
+                f"This ZarrStorage ({self.path!r}) was opened read_only; open it without read_only=True to write."
+            )
+        if self.retired_by is not None:
+            raise RuntimeError(
+                f"This ZarrStorage ({self.path!r}) handed its writer to {self.retired_by}; it "
+                f"is now a read-only snapshot. Write through the newer handle."
+            )
+        if self.closed:
+            raise RuntimeError(
+                f"This ZarrStorage ({self.path!r}) is closed; open ZarrStorage({self.path!r}) again to keep writing."
+            )
+        if self.lock is not None:
+            self.lock.check()  # an object-store lease can be lost
+
+    def release(self) -> None:
+        """Marks the handle closed, releases the writer lock and the store. Idempotent."""
+        self.closed = True
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
+        ref = _OPEN_WRITERS.get(str(self.path))
+        if ref is not None and ref() is self:
+            del _OPEN_WRITERS[str(self.path)]
+        close = getattr(self.store, "close", None)
+        if close is not None:
+            try:
+                close()
+            except Exception:  # noqa: BLE001 - nothing to save in a store being closed
+                pass
