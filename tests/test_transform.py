@@ -303,7 +303,7 @@ def _checked_recall_env(memory, num_envs: int = 1, parallel: bool = False) -> ob
     return env
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(600)  # a hang guard, not a speed limit: spawned workers import torch (10+ s on a loaded box)
 @pytest.mark.parametrize("num_envs,parallel", [(1, False), (2, False), (2, True)], ids=["single", "serial2", "parallel2"])
 def test_check_env_specs_single_and_batched(memories, num_envs, parallel):
     # Outside the batched env the transform stays in this process: a storage object is fine,
@@ -322,7 +322,7 @@ def test_check_env_specs_single_and_batched(memories, num_envs, parallel):
     env.close()
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(600)  # a hang guard, not a speed limit
 @pytest.mark.parametrize("kind", ["sync", "multi_sync", "multi_async"])
 def test_inside_collectors(memories, kind):
     """Multi-process collectors build the env in spawned workers: the memory goes as a path."""
