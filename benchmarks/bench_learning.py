@@ -304,7 +304,7 @@ def report() -> None:
 
 def plots(tr, sb, second) -> None:
     sys.path.insert(0, str(RECIPE.parent))
-    from utils import plot_success
+    from run_record import plot_success
 
     IMG.mkdir(parents=True, exist_ok=True)
     if tr:

@@ -84,7 +84,7 @@ def test_cross_env_command_end_to_end(tmp_path):
     cloned = run.main([
         f"out={out}", f"workdir={tmp_path / 'mem'}", "learned_only=true", "learned_arms=clone",
         "learned_frames=100", "learned_seeds=1", "learned_eval_episodes=1", "learned_eval_iter=100",
-        "learned_overrides=memory.prior_pretrain_bc=5;memory.pretrain_updates=5;optim.batch_size=16;"
+        "learned_overrides=prior.clone_steps=5;memory.pretrain_updates=5;optim.batch_size=16;"
         "network.hidden_sizes=[16,16];replay_buffer.size=1000;logger.backend=",
     ])
     assert set(cloned["learned"]["runs"]) == {"prior", "scratch", "clone"}

@@ -230,16 +230,16 @@ def test_cuda_recipe_trains_and_resumes(tmp_path, algo):
 
 
 def test_cuda_recipe_with_a_prior_memory_clone_and_anchor(tmp_path):
-    """memory.prior + prior_pretrain_bc + prior_bc + clone_anchor (bc.py) with the actor on the GPU."""
+    """prior.paths + clone_steps + bc + clone_anchor (recipes/her/prior_memory) with the actor on the GPU."""
     from recipes.scripted.collect import main as collect
 
     prior = tmp_path / "scripted-push.zarr"
     collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0"])
-    s = _recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'td3.zarr'}", f"memory.prior=[{prior}]",
-                "memory.prior_pretrain_bc=5", "memory.prior_bc=0.4", "memory.prior_bc_original_goals=true",
-                "memory.clone_anchor=10", "memory.freeze_normalizer=true", out="td3")
+    s = _recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'td3.zarr'}", "prior=bc", f"prior.paths=[{prior}]",
+                "prior.clone_steps=5", "prior.bc=0.4", "prior.bc_original_goals=true",
+                "prior.clone_anchor=10", "prior.freeze_normalizer=true", out="td3")
     assert s["updates"] > 0
-    s = _recipe(tmp_path, "env=push", f"memory.path={tmp_path / 'crr.zarr'}", f"memory.prior=[{prior}]", "algo=td3",
-                "memory.prior_pretrain_bc=5", "optim.actor_update=crr", "replay_buffer.sampler.enabled=true",
+    s = _recipe(tmp_path, "env=push", f"memory.path={tmp_path / 'crr.zarr'}", "prior=mix", f"prior.paths=[{prior}]", "algo=td3",
+                "prior.clone_steps=5", "prior.actor_update=crr", "replay_buffer.sampler.enabled=true",
                 out="crr")
     assert s["updates"] > 0

@@ -129,8 +129,7 @@ def test_critic_layer_norm_option(tmp_path):
     """network.critic_layer_norm=true puts a LayerNorm after each hidden layer of the critic only."""
     from hydra import compose, initialize_config_dir
 
-    sys.path.insert(0, str(RECIPE_DIR))
-    from utils import GoalNormalizer, make_agent, make_environment
+    from recipes.her.utils import GoalNormalizer, make_agent, make_environment
 
     with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
         cfg = compose("config", overrides=["network.hidden_sizes=[16,8]", "network.critic_layer_norm=true",
@@ -149,15 +148,14 @@ def test_critic_layer_norm_option(tmp_path):
 
 
 def test_actor_lr_option(tmp_path):
-    """optim.actor_lr sets the actor's learning rate only; null leaves it at optim.lr."""
+    """prior.actor_lr sets the actor's learning rate only; null leaves it at optim.lr."""
     from hydra import compose, initialize_config_dir
 
-    sys.path.insert(0, str(RECIPE_DIR))
-    from utils import GoalNormalizer, make_agent, make_environment, make_loss_module, make_optimizer
+    from recipes.her.utils import GoalNormalizer, make_agent, make_environment, make_loss_module, make_optimizer
 
     for algo, actor_lr, expected in (("td3", "1e-5", 1e-5), ("sac", "null", 1e-3)):
         with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
-            cfg = compose("config", overrides=[f"algo={algo}", "network.hidden_sizes=[8]", f"optim.actor_lr={actor_lr}",
+            cfg = compose("config", overrides=[f"algo={algo}", "network.hidden_sizes=[8]", f"prior.actor_lr={actor_lr}",
                                                f"memory.path={tmp_path / 'm.zarr'}"])
         train_env, eval_env = make_environment(cfg)
         try:
@@ -178,8 +176,7 @@ def _saved_normalizer(agent: Path, overrides: list[str]):
     from hydra import compose, initialize_config_dir
     from torchrl.checkpoint import Checkpoint
 
-    sys.path.insert(0, str(RECIPE_DIR))
-    from utils import GoalNormalizer, make_agent, make_environment, make_loss_module, make_optimizer
+    from recipes.her.utils import GoalNormalizer, make_agent, make_environment, make_loss_module, make_optimizer
 
     with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
@@ -195,7 +192,7 @@ def _saved_normalizer(agent: Path, overrides: list[str]):
 
 
 def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
-    """memory.prior: a scripted FetchPush memory, read-only, half of every batch (issue 9)."""
+    """prior.paths: a scripted FetchPush memory, read-only, half of every batch (issue 9)."""
     from recipes.scripted.collect import main as collect
     from torchrl_robotmem import ZarrStorage
 
@@ -204,28 +201,27 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     n_prior = len(ZarrStorage(prior, read_only=True))
     assert n_prior == 100
     s = run_recipe(tmp_path, "env=pick_and_place", f"memory.path={tmp_path / 'own.zarr'}",
-                   f"memory.prior=[{prior}]", "memory.prior_ratio=0.5",
-                   "memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=50", "memory.prior_bc=0.4",
-                   "memory.prior_pretrain_bc=5", "memory.prior_bc_original_goals=true",
-                   "memory.actor_freeze_frames=25", "memory.freeze_normalizer=true")
+                   "prior=bc", f"prior.paths=[{prior}]", "prior.ratio=0.5",
+                   "prior.ratio_final=0.1", "prior.anneal_frames=50", "prior.bc=0.4",
+                   "prior.clone_steps=5", "prior.bc_original_goals=true",
+                   "prior.actor_freeze_frames=25", "prior.freeze_normalizer=true")
     assert s["memory_rows_after"] == 50 and s["updates"] > 0
-    # memory.freeze_normalizer: the statistics are the prior's alone (the 50 own rows would make 150)
+    # prior.freeze_normalizer: the statistics are the prior's alone (the 50 own rows would make 150)
     normalizer = _saved_normalizer(tmp_path / "own.zarr-agent", ["env=pick_and_place", "network.hidden_sizes=[16,16]"])
     assert normalizer.stats["observation"][0].item() == n_prior
     assert normalizer.stats["goal"][0].item() == 2 * n_prior
-    assert "cloned the prior's actions into the actor: 5 steps" in s["stdout"]  # memory.prior_pretrain_bc
-    for name in ("loss_bc", "bc_kept"):  # memory.prior_bc: the Q-filtered cloning term is trained and logged
+    assert "cloned the prior's actions into the actor: 5 steps" in s["stdout"]  # prior.clone_steps
+    for name in ("loss_bc", "bc_kept"):  # prior.bc: the Q-filtered cloning term is trained and logged
         logged = next((tmp_path / "out" / "her_logging").glob(f"*/scalars/train/{name}.csv")).read_text()
         rows = [line.split(",") for line in logged.splitlines() if line[:1].isdigit()]
-        # memory.actor_freeze_frames=25: the first 25 frames train the critics only, so the term is
+        # prior.actor_freeze_frames=25: the first 25 frames train the critics only, so the term is
         # logged for the second batch alone (its mean is over actor updates, not diluted by zeros)
         assert [int(float(r[0])) for r in rows] == [50] and all(float(r[1]) >= 0 for r in rows)
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/prior_ratio.csv")).read_text()
     ratios = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
     assert ratios == [0.3, 0.1]  # annealed from 0.5: after 25 and 50 of 50 frames
-    # recipes/her/failures.py replays the run's evaluation from its saved agent and sorts the failures
-    sys.path.insert(0, str(RECIPE_DIR))
-    from failures import failures
+    # recipes.her.tools.failures replays the run's evaluation from its saved agent and sorts the failures
+    from recipes.her.tools.failures import failures
 
     f = failures(str(tmp_path / "own.zarr-agent"),
                  ["env=pick_and_place", "network.hidden_sizes=[16,16]", "logger.eval_episodes=3"])
@@ -238,26 +234,25 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     run_recipe(tmp_path, f"memory.path={reach}", out="reach")
     proc = subprocess.run(
         [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "env=push", f"memory.path={tmp_path / 'p.zarr'}",
-         f"memory.prior=[{reach}]", f"hydra.run.dir={tmp_path / 'bad'}"],
+         "prior=mix", f"prior.paths=[{reach}]", f"hydra.run.dir={tmp_path / 'bad'}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "observation layout" in proc.stderr
     # cloning prior actions without a prior memory is refused
     proc = subprocess.run(
         [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "env=push", f"memory.path={tmp_path / 'q.zarr'}",
-         "memory.prior_bc=0.4", f"hydra.run.dir={tmp_path / 'bad2'}"],
+         "prior.bc=0.4", f"hydra.run.dir={tmp_path / 'bad2'}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
-    assert proc.returncode != 0 and "set memory.prior=" in proc.stderr
+    assert proc.returncode != 0 and "set prior.paths=" in proc.stderr
     proc = subprocess.run(
         [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "env=push", f"memory.path={tmp_path / 'r.zarr'}",
-         "memory.prior_pretrain_bc=10", f"hydra.run.dir={tmp_path / 'bad3'}"],
+         "prior.clone_steps=10", f"hydra.run.dir={tmp_path / 'bad3'}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
-    assert proc.returncode != 0 and "prior_pretrain_bc" in proc.stderr and "set memory.prior=" in proc.stderr
-    # recipes/her/compare.py: the two finished runs in one plot and one table
-    sys.path.insert(0, str(RECIPE_DIR))
-    import compare
+    assert proc.returncode != 0 and "clone_steps" in proc.stderr and "set prior.paths=" in proc.stderr
+    # recipes.her.tools.compare: the two finished runs in one plot and one table
+    from recipes.her.tools import compare
 
     png = tmp_path / "cmp.png"
     md = compare.main(["--out", str(png), "--target", "0.5", "--archive", str(tmp_path / "runs"),
@@ -333,38 +328,35 @@ def test_a_killed_run_resumes_from_its_last_evaluation(tmp_path):
 def test_prior_ratio_schedule():
     from omegaconf import OmegaConf
 
-    sys.path.insert(0, str(RECIPE_DIR))
-    from utils import prior_ratio
+    from recipes.her.prior_memory import prior_ratio
 
-    cfg = OmegaConf.create({"memory": {"prior_ratio": 0.5, "prior_ratio_final": None, "prior_anneal_frames": 0}})
+    cfg = OmegaConf.create({"prior": {"ratio": 0.5, "ratio_final": None, "anneal_frames": 0}})
     assert prior_ratio(cfg, 0) == prior_ratio(cfg, 10**6) == 0.5
-    cfg.memory.prior_ratio_final, cfg.memory.prior_anneal_frames = 0.1, 1000
+    cfg.prior.ratio_final, cfg.prior.anneal_frames = 0.1, 1000
     assert [round(prior_ratio(cfg, f), 6) for f in (0, 500, 1000, 5000)] == [0.5, 0.3, 0.1, 0.1]
 
 
 def test_clone_anchor_weight_schedule():
-    """memory.clone_anchor_final: geometric from clone_anchor, so the trust region widens by a constant factor."""
+    """prior.clone_anchor_final: geometric from clone_anchor, so the trust region widens by a constant factor."""
     from omegaconf import OmegaConf
 
-    sys.path.insert(0, str(RECIPE_DIR))
-    from utils import clone_anchor_weight
+    from recipes.her.prior_memory import clone_anchor_weight
 
-    cfg = OmegaConf.create({"memory": {"clone_anchor": 100.0}})
+    cfg = OmegaConf.create({"prior": {"clone_anchor": 100.0}})
     assert clone_anchor_weight(cfg, 0) == clone_anchor_weight(cfg, 10**6) == 100.0
-    cfg.memory.clone_anchor_final, cfg.memory.clone_anchor_anneal_frames = 1.0, 1000
+    cfg.prior.clone_anchor_final, cfg.prior.clone_anchor_anneal_frames = 1.0, 1000
     assert [round(clone_anchor_weight(cfg, f), 6) for f in (0, 500, 1000, 5000)] == [100.0, 10.0, 1.0, 1.0]
-    cfg.memory.clone_anchor_final = 0.0
+    cfg.prior.clone_anchor_final = 0.0
     with pytest.raises(ValueError, match="clone_anchor_final must be > 0"):
         clone_anchor_weight(cfg, 0)
 
 
 def test_prior_runs_queue_lists_resumable_commands(tmp_path, capsys):
-    sys.path.insert(0, str(RECIPE_DIR))
-    import prior_runs
+    from recipes.her.tools import prior_runs
 
     assert {"prior-push-s2", "scratch-push-s2", "pushprior-pnp-s0", "ownprior-pnp-s2", "scratch-pnp-s1"} <= set(prior_runs.RUNS)
     cmd = prior_runs.command("anneal-push-s1", str(tmp_path))
-    assert "collector.resume=true" in cmd and "seed=1" in cmd and "memory.prior_ratio_final=0.1" in cmd
+    assert "collector.resume=true" in cmd and "seed=1" in cmd and "prior.ratio_final=0.1" in cmd
     assert f"memory.path={tmp_path / 'anneal-push-s1.zarr'}" in cmd
     (tmp_path / "prior-push-s0").mkdir()
     (tmp_path / "prior-push-s0" / "summary.json").write_text(json.dumps({"frames": 60000, "curve": [[0, 0.1], [60000, 0.8]], "cpu_s": 10}))
@@ -379,11 +371,9 @@ def _push_loss_and_scripted_batch(tmp_path: Path, algo: str):
     """A fresh FetchPush loss module of ``algo`` (32x32 networks) and 64 rows of a 2-episode scripted memory."""
     from hydra import compose, initialize_config_dir
 
+    from recipes.her import utils
     from recipes.scripted.collect import main as collect
     from torchrl_robotmem import ZarrStorage
-
-    sys.path.insert(0, str(RECIPE_DIR))
-    import utils
 
     torch.manual_seed(0)
     prior = tmp_path / "scripted-push.zarr"
@@ -400,15 +390,14 @@ def _push_loss_and_scripted_batch(tmp_path: Path, algo: str):
 
 @pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
 def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_path, algo):
-    """memory.prior_bc (bc.py): the Q-filtered behaviour-cloning term, on a real scripted memory and real losses."""
-    sys.path.insert(0, str(RECIPE_DIR))
-    from bc import PRIOR_KEY, PriorBC
+    """prior.bc (prior_memory/bc.py): the Q-filtered behaviour-cloning term, on a real scripted memory and real losses."""
+    from recipes.her.prior_memory import PRIOR_KEY, PriorBC
 
     loss, batch = _push_loss_and_scripted_batch(tmp_path, algo)
     batch.set(PRIOR_KEY, torch.ones(64, dtype=torch.bool))
     demo = batch["action"]
 
-    with pytest.raises(ValueError, match="prior_bc must be >= 0"):
+    with pytest.raises(ValueError, match="prior.bc must be >= 0"):
         PriorBC(loss, weight=-1.0)
     # no prior rows in the batch: nothing to imitate
     own = batch.clone()
@@ -441,11 +430,10 @@ def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_pat
 
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_crr_actor_loss_regresses_onto_the_better_stored_actions(tmp_path, algo):
-    """optim.actor_update=crr (bc.CRRActorLoss): the actor's loss has no critic gradient, only filtered regression."""
+    """prior.actor_update=crr (prior_memory.CRRActorLoss): the actor's loss has no critic gradient, only filtered regression."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    sys.path.insert(0, str(RECIPE_DIR))
-    from bc import CRRActorLoss
+    from recipes.her.prior_memory import CRRActorLoss
 
     loss, batch = _push_loss_and_scripted_batch(tmp_path, algo)
     crr = CRRActorLoss(loss)
@@ -463,23 +451,22 @@ def test_crr_actor_loss_regresses_onto_the_better_stored_actions(tmp_path, algo)
     assert all(p.grad is None for p in critic.values(True, True))
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.actor_network_params.values(True, True))
     # in the recipe: runs, logs the kept share; an unknown value is refused with the choices
-    s = run_recipe(tmp_path, f"algo={algo}", "optim.actor_update=crr", f"memory.path={tmp_path / 'mem.zarr'}")
+    s = run_recipe(tmp_path, f"algo={algo}", "prior.actor_update=crr", f"memory.path={tmp_path / 'mem.zarr'}")
     assert s["updates"] > 0
     kept = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/crr_kept.csv")).read_text().splitlines()
     values = [float(line.split(",")[1]) for line in kept if line[:1].isdigit()]
     assert len(values) == 2 and all(0.0 <= v <= 1.0 for v in values)  # after 25 and 50 frames
     proc = subprocess.run(
-        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "optim.actor_update=dpg",
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "prior.actor_update=dpg",
          f"memory.path={tmp_path / 'bad.zarr'}", f"hydra.run.dir={tmp_path / 'bad'}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
-    assert proc.returncode != 0 and "optim.actor_update must be q_gradient or crr" in proc.stderr
+    assert proc.returncode != 0 and "prior.actor_update must be q_gradient or crr" in proc.stderr
 
 
 def test_clone_anchor_keeps_the_actor_near_the_clone(tmp_path):
-    """memory.clone_anchor (bc.CloneAnchor): a trust region around the cloned actor's own outputs."""
-    sys.path.insert(0, str(RECIPE_DIR))
-    from bc import CloneAnchor
+    """prior.clone_anchor (prior_memory.CloneAnchor): a trust region around the cloned actor's own outputs."""
+    from recipes.her.prior_memory import CloneAnchor
 
     loss, batch = _push_loss_and_scripted_batch(tmp_path, "td3")
     with pytest.raises(ValueError, match="clone_anchor must be > 0"):
@@ -511,37 +498,35 @@ def test_clone_anchor_keeps_the_actor_near_the_clone(tmp_path):
     assert free > 0.05 and anchored < free / 3, (free, anchored)
     # in the recipe: needs the clone, logs the shift, and the copy is saved with the agent
     prior = tmp_path / "scripted-push.zarr"
-    s = run_recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'mem.zarr'}", f"memory.prior=[{prior}]",
-                   "memory.prior_pretrain_bc=5", "memory.clone_anchor=10", "memory.freeze_normalizer=true",
-                   "memory.clone_anchor_final=0.1", "memory.clone_anchor_anneal_frames=50")
+    s = run_recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'mem.zarr'}", "prior=mix", f"prior.paths=[{prior}]",
+                   "prior.clone_steps=5", "prior.clone_anchor=10", "prior.freeze_normalizer=true",
+                   "prior.clone_anchor_final=0.1", "prior.clone_anchor_anneal_frames=50")
     assert s["updates"] > 0
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/anchor_shift.csv")).read_text()
     shifts = [float(line.split(",")[1]) for line in logged.splitlines() if line[:1].isdigit()]
     assert len(shifts) == 2 and all(v >= 0 for v in shifts)
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/anchor_weight.csv")).read_text()
     weights = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
-    assert weights == [1.0, 0.1]  # memory.clone_anchor_final: 10 -> 0.1 geometric, after 25 and 50 of 50 frames
+    assert weights == [1.0, 0.1]  # prior.clone_anchor_final: 10 -> 0.1 geometric, after 25 and 50 of 50 frames
     assert any(p.name.endswith("clone_anchor") for p in (tmp_path / "mem.zarr-agent" / "components").iterdir())
     proc = subprocess.run(
-        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "memory.clone_anchor=10",
+        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, "prior.clone_anchor=10",
          f"memory.path={tmp_path / 'bad.zarr'}", f"hydra.run.dir={tmp_path / 'bad'}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
-    assert proc.returncode != 0 and "set memory.prior_pretrain_bc=N" in proc.stderr
+    assert proc.returncode != 0 and "set prior.clone_steps=N" in proc.stderr
 
 
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
-    """memory.prior_pretrain_bc (bc.pretrain_actor): the actor imitates the scripted memory before any RL update."""
+    """prior.clone_steps (prior_memory.pretrain_actor): the actor imitates the scripted memory before any RL update."""
     from hydra import compose, initialize_config_dir
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+    from recipes.her import utils
+    from recipes.her.prior_memory import pretrain_actor
     from recipes.scripted.collect import main as collect
     from torchrl_robotmem import ZarrStorage
-
-    sys.path.insert(0, str(RECIPE_DIR))
-    import utils
-    from bc import pretrain_actor
 
     torch.manual_seed(0)
     prior = tmp_path / "scripted-push.zarr"
@@ -574,16 +559,14 @@ def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
     # the prior's episodes must hold what the actor reads
     bare = ZarrStorage(tmp_path / "bare.zarr", max_size=10)
     bare.set(range(4), rows[:4].exclude("desired_goal"))
-    with pytest.raises(KeyError, match="desired_goal"):  # also what prior_bc_original_goals reads
+    with pytest.raises(KeyError, match="desired_goal"):  # also what prior.bc_original_goals reads
         pretrain_actor(loss, [bare], steps=1)
 
 
 def test_clone_sensitivity_reports_success_against_weight_noise(tmp_path):
-    """recipes/her/clone_sensitivity.py: clones a scripted memory, perturbs the weights, evaluates, plots."""
+    """recipes.her.tools.clone_sensitivity: clones a scripted memory, perturbs the weights, evaluates, plots."""
+    from recipes.her.tools.clone_sensitivity import main, sensitivity
     from recipes.scripted.collect import main as collect
-
-    sys.path.insert(0, str(RECIPE_DIR))
-    from clone_sensitivity import main, sensitivity
 
     prior = tmp_path / "scripted-push.zarr"
     collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0", "noise=0"])

@@ -168,10 +168,10 @@ def make_arms(storage, baseline: StrikeParams, k: int) -> dict[str, ParamFn]:
 # the learned arm's runs: recipes/her overrides on top of env=slide (the clone arm is the recipe that met the
 # FetchPush and PickAndPlace goals at frame 0, docs/results.md sections 11-12)
 LEARNED_ARMS: dict[str, list[str]] = {
-    "prior": [],
+    "prior": ["prior=mix"],
     "scratch": [],
-    "clone": ["algo=td3", "memory.prior_pretrain_bc=4000", "collector.init_random_frames=0",
-              "memory.freeze_normalizer=true", "optim.actor_update=crr"],
+    # prior=clone: prior.clone_steps=4000 prior.freeze_normalizer=true prior.actor_update=crr
+    "clone": ["algo=td3", "prior=clone", "collector.init_random_frames=0"],
 }
 
 
@@ -181,7 +181,7 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str,
     """FetchSlide SAC+HER (``recipes/her``) with ``memory`` as a read-only prior vs from scratch.
 
     Both arms run the same recipe, seeds and frame budget; the prior arm adds
-    ``memory.prior=[memory]`` (sampled as half of every batch, rewards recomputed
+    ``prior=mix 'prior.paths=[memory]'`` (sampled as half of every batch, rewards recomputed
     for FetchSlide, hindsight relabelling on its rows too). The optional
     ``clone`` arm clones the memory's successful episodes into a TD3 actor
     before the first frame and then trains it by critic-regularised regression
@@ -228,7 +228,7 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str,
                f"logger.eval_episodes={eval_episodes}", "logger.plot=false", f"hydra.run.dir={run_dir}",
                "collector.resume=true", *LEARNED_ARMS[arm], *(overrides or [])]
         if arm != "scratch":
-            cmd.append(f"memory.prior=[{os.path.abspath(memory)}]")
+            cmd.append(f"prior.paths=[{os.path.abspath(memory)}]")
         log(f"learned arm: {name}: {' '.join(cmd[1:])}")
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         with open(os.path.join(run_dir, "summary.json")) as f:

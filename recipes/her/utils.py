@@ -1,25 +1,27 @@
-"""Builders for the HER recipe (``train.py``): envs, replay buffer, agent, loss, optimiser.
+"""Builders for the HER recipe (``train.py``): logger, envs, collector, replay buffer, agent, loss, optimiser.
 
 Laid out as TorchRL's ``sota-implementations/{sac,td3,ddpg}/utils.py``; the
 memory parts (storage, sampler, recall transform) are built from the
-``_target_`` entries of ``config.yaml``.
+``_target_`` entries of ``config.yaml``. The prior-memory parts are in
+``prior_memory/``. This module imports no sibling: ``train.py`` imports it as
+``utils`` (a script's own directory is on ``sys.path``), the tools as
+``recipes.her.utils``. What a run keeps of itself (CPU clock, progress for
+``collector.resume``, history, summary, plot) is in ``run_record.py``.
 """
 from __future__ import annotations
 
-import contextlib
 import inspect
-import json
 import logging
-import time
 import warnings
 
 import torch
-from hydra.utils import get_class, instantiate
+from hydra.utils import get_class, instantiate, to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModule, TensorDictSequential
 from tensordict.nn.distributions import NormalParamExtractor
 from torch import nn, optim
+from torchrl.checkpoint import Checkpoint, CheckpointError
 from torchrl.collectors import Collector
 from torchrl.data import HERReplayBuffer
 from torchrl.envs import RewardSum
@@ -33,8 +35,9 @@ from torchrl.modules import (
 )
 from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss, group_optimizers
+from torchrl.record.loggers import Logger, generate_exp_name, get_logger
 
-from torchrl_robotmem import make_env, make_reward_fn
+from torchrl_robotmem import ZarrStorage, make_env, make_reward_fn
 
 # gymnasium-robotics prints an Adroit reward notice to stderr on every import
 # (through farama_notifications); nothing above imports it, so drop it here.
@@ -50,6 +53,23 @@ logging.getLogger("matplotlib").setLevel(logging.WARNING)
 # The keys the recall transform adds; recomputed after every sample (HER
 # replaces the goal they were recalled for), so never stored.
 RECALL_KEYS = ("prior_goals", "prior_goals_dist", "prior_goals_mask")
+
+
+# ====================================================================
+# Logger
+# ------
+
+
+def make_logger(cfg: DictConfig) -> Logger | None:
+    """The run's logger (``logger.backend``: csv | tensorboard | wandb), ``None`` for ``""``."""
+    if not cfg.logger.backend:
+        return None
+    return get_logger(
+        cfg.logger.backend,
+        logger_name="her_logging",
+        experiment_name=generate_exp_name(cfg.algo.name, cfg.logger.exp_name),
+        wandb_kwargs={"mode": cfg.logger.mode, "project": cfg.logger.project_name},
+    )
 
 
 # ====================================================================
@@ -104,6 +124,20 @@ def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int |
         sampler=sampler,
         batch_size=cfg.optim.batch_size if batch_size == -1 else batch_size,
     )
+
+
+def make_prior_buffers(cfg: DictConfig) -> list[HERReplayBuffer]:
+    """One HER buffer per ``prior.paths`` entry, on a read-only :class:`~torchrl_robotmem.ZarrStorage`.
+
+    They are sampled in part-batches only (``prior_memory.PriorMix``), so they have no batch size.
+    """
+    buffers = []
+    for path in cfg.prior.paths:
+        storage = ZarrStorage(to_absolute_path(str(path)), read_only=True)
+        if not len(storage):
+            raise ValueError(f"the prior memory {path!r} holds no transitions.")
+        buffers.append(make_replay_buffer(cfg, storage, batch_size=None))
+    return buffers
 
 
 def make_recall(cfg: DictConfig, memory):
@@ -163,7 +197,7 @@ def train_device(cfg: DictConfig) -> torch.device:
     ``cuda`` on a machine without one is refused with what to set, not silently
     run on the CPU (CPU-seconds measured on a GPU run are not comparable).
     """
-    device = torch.device(str(cfg.get("device") or "cpu"))
+    device = torch.device(str(cfg.device))
     if device.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError(f"device={cfg.device}: torch sees no CUDA device here "
                            f"(torch {torch.__version__}, a CPU-only build?). Run with device=cpu.")
@@ -189,79 +223,16 @@ def make_collector(
     return collector
 
 
-def prior_ratio(cfg: DictConfig, frames: int) -> float:
-    """Share of a batch drawn from ``memory.prior`` after ``frames`` new env frames.
-
-    ``memory.prior_ratio`` throughout, or, with ``memory.prior_ratio_final`` set,
-    linear from ``prior_ratio`` to ``prior_ratio_final`` over ``memory.prior_anneal_frames``.
-    """
-    start, final = cfg.memory.prior_ratio, cfg.memory.get("prior_ratio_final")
-    horizon = cfg.memory.get("prior_anneal_frames") or 0
-    if final is not None and not 0.0 <= final <= 1.0:
-        raise ValueError(f"memory.prior_ratio_final must be in [0, 1], got {final}.")
-    if final is None or horizon <= 0:
-        return float(start)
-    t = min(1.0, frames / horizon)
-    return float(start + t * (final - start))
-
-
-def clone_anchor_weight(cfg: DictConfig, frames: int) -> float:
-    """``w`` of ``memory.clone_anchor`` after ``frames`` new env frames.
-
-    ``memory.clone_anchor`` throughout, or, with ``memory.clone_anchor_final`` set,
-    geometric from ``clone_anchor`` to ``clone_anchor_final`` over
-    ``memory.clone_anchor_anneal_frames`` (the trust region's radius, about
-    ``1 / w``, then widens by the same factor every frame), constant after.
-    """
-    start, final = float(cfg.memory.clone_anchor), cfg.memory.get("clone_anchor_final")
-    horizon = cfg.memory.get("clone_anchor_anneal_frames") or 0
-    if final is None or horizon <= 0:
-        return start
-    if not final > 0:
-        raise ValueError(f"memory.clone_anchor_final must be > 0 (the anchor's last weight), got {final}.")
-    t = min(1.0, frames / horizon)
-    return float(start * (float(final) / start) ** t)
-
-
-def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dict | None:
-    """Where a stopped run stands, for ``collector.resume=true`` (``None``: start the run fresh).
-
-    The progress is the metadata of the agent checkpoint that the run saves at
-    every evaluation. Nothing to resume (no checkpoint, empty memory) starts a
-    fresh run; a memory with rows but no progress is refused, since its rows
-    would be counted as an earlier run's.
-    """
-    if not cfg.collector.get("resume"):
-        return None
-    from torchrl.checkpoint import Checkpoint
-
-    if not Checkpoint.is_checkpoint(checkpoint_path):
-        if memory_rows:
-            raise RuntimeError(
-                f"collector.resume=true: the memory holds {memory_rows} transitions but there is no agent "
-                f"checkpoint at {checkpoint_path} to resume from (the run was stopped before its first "
-                "evaluation?). Start it again on a fresh memory.path, or drop collector.resume."
-            )
-        return None
-    meta = Checkpoint.manifest(checkpoint_path).get("metadata") or {}
-    missing = [k for k in ("frames", "curve", "cpu_s", "memory_rows", "memory_rows_before", "updates") if k not in meta]
-    if missing:
+def load_agent(checkpoint: Checkpoint, path: str) -> None:
+    """Restores the agent saved at ``path``, or says which settings it was saved with."""
+    try:
+        checkpoint.load(path)
+    except CheckpointError as err:
         raise RuntimeError(
-            f"collector.resume=true: the checkpoint at {checkpoint_path} has no run progress ({missing} missing "
-            "from its metadata; written by an older recipe?). Use memory.resume_agent=true to start a new run "
-            "from its networks instead."
-        )
-    if meta.get("env") != cfg.env.name or meta.get("seed") != cfg.seed:
-        raise RuntimeError(
-            f"collector.resume=true: the checkpoint at {checkpoint_path} is of env={meta.get('env')} "
-            f"seed={meta.get('seed')}, this run is env={cfg.env.name} seed={cfg.seed}."
-        )
-    if memory_rows < meta["memory_rows"]:
-        raise RuntimeError(
-            f"collector.resume=true: the memory holds {memory_rows} transitions, fewer than the "
-            f"{meta['memory_rows']} of the checkpoint at {checkpoint_path}: not the memory of this run."
-        )
-    return meta
+            f"the agent checkpoint {path} does not fit this agent (saved with other "
+            "algo / network / memory.recall settings?). Use the settings it was saved with, "
+            "or start fresh networks on the memory with memory.resume_agent=false."
+        ) from err
 
 
 @torch.no_grad()
@@ -411,7 +382,7 @@ def make_agent(cfg: DictConfig, env, normalizer: GoalNormalizer):
         raise ValueError(f"algo.name must be SAC, TD3 or DDPG, got {algo!r}.")
 
     critic_mlp = dict(mlp)
-    if cfg.network.get("critic_layer_norm", False):  # RLPD (Ball et al., 2023): LayerNorm after each hidden layer
+    if cfg.network.critic_layer_norm:  # RLPD (Ball et al., 2023): LayerNorm after each hidden layer
         critic_mlp.update(norm_class=nn.LayerNorm,
                           norm_kwargs=[{"normalized_shape": h} for h in cfg.network.hidden_sizes])
     qvalue = ValueOperator(
@@ -487,8 +458,8 @@ def make_loss_module(cfg: DictConfig, model):
 def make_optimizer(cfg: DictConfig, loss_module):
     """One Adam per parameter group (actor, critic, and SAC's entropy), grouped.
 
-    The actor's learning rate is ``optim.actor_lr`` where set, else ``optim.lr`` (even
-    1e-5 did not keep a cloned FetchPush actor, docs/results.md section 12).
+    The actor's learning rate is ``prior.actor_lr`` where set, else ``optim.lr`` (even
+    1e-5 did not keep a cloned FetchPush actor, docs/notes/results_log.md section 12).
     """
     critic = loss_module.qvalue_network_params if hasattr(loss_module, "qvalue_network_params") \
         else loss_module.value_network_params
@@ -497,7 +468,7 @@ def make_optimizer(cfg: DictConfig, loss_module):
         list(critic.flatten_keys().values()),
     ]
     kw = dict(weight_decay=cfg.optim.weight_decay, eps=cfg.optim.adam_eps)
-    actor_lr = cfg.optim.get("actor_lr") or cfg.optim.lr
+    actor_lr = cfg.prior.actor_lr or cfg.optim.lr
     optimizers = [optim.Adam(g, lr=lr, **kw) for g, lr in zip(groups, (actor_lr, cfg.optim.lr))]
     if cfg.algo.name == "SAC":
         optimizers.append(optim.Adam([loss_module.log_alpha], lr=cfg.optim.lr))
@@ -526,66 +497,3 @@ def mean_losses(losses: TensorDictBase) -> dict[str, float]:
         if not torch.isnan(mean):
             means[f"train/{key}"] = mean.item()
     return means
-
-
-# ====================================================================
-# General utils
-# -------------
-
-
-class CpuClock:
-    """Process CPU seconds, with ``paused()`` sections (evaluation) left out."""
-
-    def __init__(self, offset: float = 0.0):
-        self._start = time.process_time() - offset  # offset: CPU-seconds of the run before a resume
-        self._excluded = 0.0
-
-    @contextlib.contextmanager
-    def paused(self):
-        t0 = time.process_time()
-        try:
-            yield
-        finally:
-            self._excluded += time.process_time() - t0
-
-    def seconds(self) -> float:
-        return time.process_time() - self._start - self._excluded
-
-
-def read_history(path: str) -> list[dict]:
-    """Summaries of the earlier runs on a memory (one JSON object a line)."""
-    try:
-        with open(path) as f:
-            return [json.loads(line) for line in f if line.strip()]
-    except FileNotFoundError:
-        return []
-
-
-def append_history(path: str, summary: dict) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps(summary) + "\n")
-
-
-def plot_success(curves: dict[str, list[tuple[int, float]]], path: str, title: str = "") -> bool:
-    """Writes success rate vs env frames (one line per curve) to ``path``; False without matplotlib."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return False
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for label, points in curves.items():
-        if points:
-            frames, success = zip(*points)
-            ax.plot(frames, success, marker="o", markersize=3, label=label)
-    ax.axhline(0.95, color="grey", lw=0.8, ls="--")
-    ax.set(xlabel="env frames collected in this run", ylabel="eval success rate", ylim=(-0.02, 1.02), title=title)
-    ax.grid(alpha=0.3)
-    if len(curves) > 1:
-        ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return True

@@ -1,8 +1,8 @@
-"""How far can a cloned actor's weights move before it stops pushing? (docs/results.md section 12)
+"""How far can a cloned actor's weights move before it stops pushing? (docs/notes/results_log.md section 12)
 
 Clones a prior memory's successful actions into a fresh FetchPush TD3 actor, as
-``memory.prior_pretrain_bc`` does in ``train.py`` (statistics of the prior only,
-``bc.pretrain_actor``), then adds Gaussian noise of standard deviation ``sigma``
+``prior.clone_steps`` does in ``train.py`` (statistics of the prior only,
+``prior_memory.pretrain_actor``), then adds Gaussian noise of standard deviation ``sigma``
 to every weight and evaluates the recipe's deterministic policy (100 episodes,
 the run's fixed evaluation goals). For each ``sigma`` it prints the evaluated
 success and the mean absolute change of the deterministic action on the
@@ -10,7 +10,7 @@ demonstration states. One Adam step moves every weight by up to the learning
 rate, so ``N`` steps at ``lr`` move a weight by up to ``N * lr``: 1250 actor
 steps at 1e-5 reach 0.0125::
 
-    python recipes/her/clone_sensitivity.py bench_results/prior/scripted-push-500-n0.zarr \
+    python -m recipes.her.tools.clone_sensitivity bench_results/prior/scripted-push-500-n0.zarr \
         --plot docs/img/clone_sensitivity.png
 
 ``--replot FILE.jsonl`` redraws the plot from the printed rows without re-running.
@@ -20,26 +20,25 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 import torch
 from hydra import compose, initialize_config_dir
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import utils  # noqa: E402
-from bc import load_demos, pretrain_actor  # noqa: E402
+from recipes.her import utils
+from recipes.her.prior_memory import load_demos, pretrain_actor
+from torchrl_robotmem import ZarrStorage
+
+RECIPE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # config.yaml and its groups
 
 
 def sensitivity(prior: str, sigmas: list[float], steps: int = 4000, seed: int = 0,
                 episodes: int = 100, env: str = "push") -> list[dict]:
     """Evaluated success of the cloned actor with N(0, sigma^2) added to each weight, for each ``sigma``."""
-    from torchrl_robotmem import ZarrStorage
-
-    torch.set_num_threads(1)
-    torch.manual_seed(seed)
-    with initialize_config_dir(config_dir=os.path.dirname(os.path.abspath(__file__)), version_base="1.3"):
+    with initialize_config_dir(config_dir=RECIPE_DIR, version_base="1.3"):
         cfg = compose("config", overrides=[f"env={env}", "algo=td3", f"seed={seed}", f"logger.eval_episodes={episodes}"])
+    torch.set_num_threads(cfg.num_threads)
+    torch.manual_seed(seed)
     train_env, eval_env = utils.make_environment(cfg)
     storage = ZarrStorage(prior, read_only=True)
     normalizer = utils.GoalNormalizer()
@@ -104,7 +103,7 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("prior", help="a scripted memory (recipes.scripted.collect)")
     p.add_argument("--sigmas", default="0,0.001,0.003,0.01,0.03")
-    p.add_argument("--steps", type=int, default=4000, help="cloning steps (memory.prior_pretrain_bc)")
+    p.add_argument("--steps", type=int, default=4000, help="cloning steps (prior.clone_steps)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--env", default="push")

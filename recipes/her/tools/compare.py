@@ -6,7 +6,7 @@ plot draws every run (one colour a group), the table gives each run's success
 at every evaluated frame count, its CPU time and the frames at which it first
 reached ``--target``::
 
-    python recipes/her/compare.py --out docs/img/prior_push.png --target 0.9 \\
+    python -m recipes.her.tools.compare --out docs/img/prior_push.png --target 0.9 \\
         "prior memory=bench_results/prior/run-push-s0,bench_results/prior/run-push-s1" \\
         "from scratch=bench_results/prior/scratch-push-s0"
 
@@ -17,10 +17,10 @@ with ``collector.resume=true`` logs to one more; its CPU time shows as "partial"
 Run directories (memories, logs) are big and machine-local; their curves are
 small. ``--archive DIR`` writes each run's curve, frames and CPU time to
 ``DIR/<run>.json``, and such a file can stand in for the run directory later
-(``docs/runs/`` keeps those of docs/results.md)::
+(``docs/runs/`` keeps those of docs/results.md and docs/notes/results_log.md)::
 
-    python recipes/her/compare.py --out /tmp/p.png --archive docs/runs "bc=bench_results/p60/bc-push-s0"
-    python recipes/her/compare.py --out docs/img/x.png "bc=docs/runs/bc-push-s0.json"
+    python -m recipes.her.tools.compare --out /tmp/p.png --archive docs/runs "bc=bench_results/p60/bc-push-s0"
+    python -m recipes.her.tools.compare --out docs/img/x.png "bc=docs/runs/bc-push-s0.json"
 """
 from __future__ import annotations
 
@@ -29,6 +29,8 @@ import csv
 import glob
 import json
 import os
+
+from recipes.her.run_record import first_reach
 
 
 def load_run(run_dir: str) -> dict:
@@ -56,13 +58,6 @@ def load_run(run_dir: str) -> dict:
     curve = [[x, points[x]] for x in sorted(points)]
     return {"dir": run_dir, "curve": curve, "frames": curve[-1][0] if curve else 0, "cpu_s": None,
             "running": True}
-
-
-def first_reach(curve: list, target: float | None) -> int | None:
-    """Frames of the first evaluation at or above ``target`` (``None``: never, or no target)."""
-    if target is None:
-        return None
-    return next((int(x) for x, y in curve if y >= target), None)
 
 
 def table(groups: dict[str, list[dict]], target: float) -> str:

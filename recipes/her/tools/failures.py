@@ -4,7 +4,7 @@ Loads the agent checkpoint a ``recipes/her/train.py`` run saved next to its
 memory, replays the run's deterministic evaluation (same eval seeds, same
 number of episodes) and sorts the failures by where the object ended::
 
-    python recipes/her/failures.py bench_results/p60/own-push-s0.zarr-agent env=push seed=0
+    python -m recipes.her.tools.failures bench_results/p60/own-push-s0.zarr-agent env=push seed=0
 
 * untouched: the object moved less than 1 cm (the agent did not push);
 * near miss: pushed, ended 5-10 cm from the goal (the success radius is 5 cm);
@@ -14,7 +14,7 @@ It also splits the success rate by where the goal is: on the table, or in the ai
 (FetchPickAndPlace puts half of its goals up to 45 cm above the table, where a
 push cannot take the object).
 
-The trailing arguments are hydra overrides of ``config.yaml``: give the ones the
+The trailing arguments are hydra overrides of ``recipes/her/config.yaml``: give the ones the
 run was trained with (env, seed, network, ``logger.eval_episodes``).
 """
 from __future__ import annotations
@@ -26,15 +26,16 @@ import torch
 from hydra import compose, initialize_config_dir
 from torchrl.checkpoint import Checkpoint
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import utils  # noqa: E402
+from recipes.her import utils
+
+RECIPE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # config.yaml and its groups
 
 
 def failures(checkpoint: str, overrides: list[str]) -> dict:
     """Success rate and failure categories of the deterministic evaluation of ``checkpoint``."""
-    torch.set_num_threads(1)
-    with initialize_config_dir(config_dir=os.path.dirname(os.path.abspath(__file__)), version_base="1.3"):
+    with initialize_config_dir(config_dir=RECIPE_DIR, version_base="1.3"):
         cfg = compose("config", overrides=["logger.eval_episodes=100", *overrides])
+    torch.set_num_threads(cfg.num_threads)
     train_env, eval_env = utils.make_environment(cfg)
     normalizer = utils.GoalNormalizer()
     model, _ = utils.make_agent(cfg, train_env, normalizer)

@@ -1,4 +1,4 @@
-"""The prior-memory experiments of docs/results.md (sections 8-14), as one resumable queue.
+"""The prior-memory experiments of docs/results.md (docs/notes/results_log.md sections 8-15), as one resumable queue.
 
 Every run is ``recipes/her/train.py`` with 60k new env frames, 100 deterministic
 evaluation episodes every 2500 frames and ``collector.resume=true``: launching
@@ -7,11 +7,11 @@ its last evaluation and skips finished ones. ``--jobs`` runs go at a time
 (two on a 2-core machine), in the order listed; each writes its memory and
 hydra directory under ``--root`` and its log to ``--root/NAME.log``. Run
 directories are machine-local: keep a finished run's curve with
-``compare.py --archive docs/runs`` (docs/results.md section 10)::
+``python -m recipes.her.tools.compare --archive docs/runs`` (docs/notes/results_log.md section 10)::
 
-    python recipes/her/prior_runs.py --list                    # names, state, overrides
-    python recipes/her/prior_runs.py --jobs 2                   # everything not finished yet
-    python recipes/her/prior_runs.py --only anneal-push-s0,anneal-push-s1
+    python -m recipes.her.tools.prior_runs --list                    # names, state, overrides
+    python -m recipes.her.tools.prior_runs --jobs 2                   # everything not finished yet
+    python -m recipes.her.tools.prior_runs --only anneal-push-s0,anneal-push-s1
 
 The scripted prior memories are made once by ``recipes.scripted.collect``::
 
@@ -37,84 +37,81 @@ PNP_PRIOR = "bench_results/prior/scripted-pnp-500.zarr"
 PNP_PRIOR_CLEAN = "bench_results/prior/scripted-pnp-500-n0.zarr"  # default parameters: 100% in docs/scripted.md
 COMMON = ["collector.total_frames=60000", "logger.eval_iter=2500", "logger.eval_episodes=100",
           "logger.target_success=0.9", "collector.resume=true"]
-ANNEAL = ["memory.prior_ratio_final=0.1", "memory.prior_anneal_frames=30000"]
-BC = ["memory.prior_bc=0.4"]  # Q-filtered cloning of the prior's actions (bc.py), TD3+BC's weight
+ANNEAL = ["prior.ratio_final=0.1", "prior.anneal_frames=30000"]
 # RLPD-style: two updates a frame on half the batch (the same matmul cost as one update at 512) and
 # LayerNorm critics, RLPD's stabiliser for high update-to-data ratios on prior data
 UTD2 = ["optim.utd_ratio=2", "optim.batch_size=256", "network.critic_layer_norm=true"]
 # clone the prior's actions into the actor first (4000 steps), then 3000 critic-only updates, then SAC with
-# the Q-filtered BC term; evaluated every 2500 frames to 20k without the 0.9 stop, to see whether RL keeps it
-CLONE = ["memory.prior_pretrain_bc=4000", *BC]
+# the Q-filtered BC term (prior=bc: TD3+BC's weight 0.4); evaluated every 2500 frames to 20k without the 0.9
+# stop, to see whether RL keeps it
+CLONE = ["prior=bc", "prior.clone_steps=4000"]
+# the clone kept by a trust region (prior_memory.CloneAnchor) with TD3's own actor loss and the start's statistics
+ANCHOR = ["prior=mix", "prior.clone_steps=4000", "collector.init_random_frames=0", "prior.freeze_normalizer=true"]
 
 
 def _runs() -> dict[str, list[str]]:
     runs: dict[str, list[str]] = {}
     for seed in range(3):  # FetchPush: prior memory, annealed prior share, from scratch
-        runs[f"prior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
+        runs[f"prior-push-s{seed}"] = ["env=push", f"seed={seed}", "prior=mix", f"prior.paths=[{PUSH_PRIOR}]"]
         runs[f"scratch-push-s{seed}"] = ["env=push", f"seed={seed}"]
-        runs[f"anneal-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]", *ANNEAL]
-        runs[f"cleanprior-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
-        runs[f"bc-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *BC]
-        runs[f"clone-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *CLONE,
+        runs[f"anneal-push-s{seed}"] = [*runs[f"prior-push-s{seed}"], *ANNEAL]
+        runs[f"cleanprior-push-s{seed}"] = ["env=push", f"seed={seed}", "prior=mix", f"prior.paths=[{PUSH_PRIOR_CLEAN}]"]
+        runs[f"bc-push-s{seed}"] = ["env=push", f"seed={seed}", "prior=bc", f"prior.paths=[{PUSH_PRIOR_CLEAN}]"]
+        runs[f"clone-push-s{seed}"] = ["env=push", f"seed={seed}", f"prior.paths=[{PUSH_PRIOR_CLEAN}]", *CLONE,
                                        "collector.total_frames=20000", "logger.target_success=null"]
         # the same with TD3 + unfiltered BC (TD3+BC, Fujimoto & Gu 2021): SAC's online updates undid the clone
-        runs[f"clonetd3-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]",
-                                          *CLONE, "memory.prior_bc_q_filter=false", "collector.init_random_frames=0",
+        runs[f"clonetd3-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"prior.paths=[{PUSH_PRIOR_CLEAN}]",
+                                          *CLONE, "prior.bc_q_filter=false", "collector.init_random_frames=0",
                                           "collector.total_frames=20000", "logger.target_success=null"]
         # ... with a ten times stronger anchor (w=4): does cloning on every update keep the policy?
-        runs[f"clonetd3bc4-push-s{seed}"] = [o.replace("prior_bc=0.4", "prior_bc=4.0")
-                                              for o in runs[f"clonetd3-push-s{seed}"]]
+        runs[f"clonetd3bc4-push-s{seed}"] = [*runs[f"clonetd3-push-s{seed}"], "prior.bc=4.0"]
         # ... imitating only original-goal rows of successful prior episodes (relabelled goals are not the scripted aim)
-        runs[f"clonetd3og-push-s{seed}"] = [*runs[f"clonetd3bc4-push-s{seed}"], "memory.prior_bc_original_goals=true"]
+        runs[f"clonetd3og-push-s{seed}"] = [*runs[f"clonetd3bc4-push-s{seed}"], "prior.bc_original_goals=true"]
         # ... with the actor frozen for the first 10k frames, so the critics learn the clone's returns first
-        runs[f"clonefreeze-push-s{seed}"] = [*runs[f"clonetd3og-push-s{seed}"], "memory.actor_freeze_frames=10000"]
+        runs[f"clonefreeze-push-s{seed}"] = [*runs[f"clonetd3og-push-s{seed}"], "prior.actor_freeze_frames=10000"]
         # keep the clone: frozen normaliser statistics (the clone's inputs keep their meaning) and a 100x
         # smaller actor learning rate, to 60k frames without the 0.9 stop
         runs[f"keep-push-s{seed}"] = [o for o in runs[f"clonetd3og-push-s{seed}"] if not o.startswith("collector.total")]
-        runs[f"keep-push-s{seed}"] += ["memory.freeze_normalizer=true", "optim.actor_lr=1e-5"]
-        # the cloned actor trained by critic-regularised regression (bc.CRRActorLoss): no action gradient, so
-        # no offset from the data; frozen normaliser statistics; no extra BC term
-        runs[f"crr-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]",
-                                     "memory.prior_pretrain_bc=4000", "collector.init_random_frames=0",
-                                     "memory.freeze_normalizer=true", "optim.actor_update=crr",
+        runs[f"keep-push-s{seed}"] += ["prior.freeze_normalizer=true", "prior.actor_lr=1e-5"]
+        # the cloned actor trained by critic-regularised regression (prior_memory.CRRActorLoss): no action
+        # gradient, so no offset from the data; frozen normaliser statistics; no extra BC term (prior=clone)
+        runs[f"crr-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", "prior=clone",
+                                     f"prior.paths=[{PUSH_PRIOR_CLEAN}]", "collector.init_random_frames=0",
                                      "logger.target_success=null"]
         # ... with a quarter of TD3's exploration noise (0.05): the regression targets of the run's own rows are
         # the clone's actions plus that noise, which the actor fits
         runs[f"crrlow-push-s{seed}"] = [*runs[f"crr-push-s{seed}"], "algo.exploration_noise=0.05"]
-        # a trust region around the clone's own outputs on every batch state (bc.CloneAnchor), with TD3's own
-        # actor loss: the actions move by about grad_a Q / (2 w mean|Q|); to 20k frames without the 0.9 stop
-        runs[f"anchor-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]",
-                                        "memory.prior_pretrain_bc=4000", "collector.init_random_frames=0",
-                                        "memory.freeze_normalizer=true", "memory.clone_anchor=10",
+        # a trust region around the clone's own outputs on every batch state (prior_memory.CloneAnchor), with
+        # TD3's own actor loss: the actions move by about grad_a Q / (2 w mean|Q|); to 20k frames without the 0.9 stop
+        runs[f"anchor-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"prior.paths=[{PUSH_PRIOR_CLEAN}]",
+                                        *ANCHOR, "prior.clone_anchor=10",
                                         "collector.total_frames=20000", "logger.target_success=null"]
-        runs[f"anchor100-push-s{seed}"] = [o.replace("clone_anchor=10", "clone_anchor=100")
+        runs[f"anchor100-push-s{seed}"] = [o.replace("prior.clone_anchor=10", "prior.clone_anchor=100")
                                            for o in runs[f"anchor-push-s{seed}"]]
         # ... with the weight annealed geometrically from 100 to 1 over 20k frames (the trust region widens
         # 100x): can RL improve on the clone once the critics have learned its returns? 30k frames
         runs[f"annealanchor-push-s{seed}"] = [
             *[o for o in runs[f"anchor100-push-s{seed}"] if not o.startswith("collector.total")],
-            "memory.clone_anchor_final=1", "memory.clone_anchor_anneal_frames=20000", "collector.total_frames=30000"]
-        runs[f"utd2-push-s{seed}"] = ["env=push", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR_CLEAN}]", *UTD2]
+            "prior.clone_anchor_final=1", "prior.clone_anchor_anneal_frames=20000", "collector.total_frames=30000"]
+        runs[f"utd2-push-s{seed}"] = [*runs[f"cleanprior-push-s{seed}"], *UTD2]
     for seed in range(3):  # FetchPickAndPlace: Push-only prior (cross-task), its own prior, from scratch
-        runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PUSH_PRIOR}]"]
-        runs[f"ownprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", f"memory.prior=[{PNP_PRIOR}]"]
+        runs[f"pushprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", "prior=mix", f"prior.paths=[{PUSH_PRIOR}]"]
+        runs[f"ownprior-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", "prior=mix", f"prior.paths=[{PNP_PRIOR}]"]
         runs[f"scratch-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}"]
-        # the cloned actor on PickAndPlace: from its own default-parameter memory, and from FetchPush's (cross-task);
-        # stops at the first evaluation at or above 0.9 (frame 0 when the clone alone does it)
-        clone = ["env=pick_and_place", "algo=td3", f"seed={seed}", "memory.prior_pretrain_bc=4000",
-                 "collector.init_random_frames=0", "memory.freeze_normalizer=true", "optim.actor_update=crr"]
-        runs[f"clone-pnp-s{seed}"] = [*clone, f"memory.prior=[{PNP_PRIOR_CLEAN}]"]
+        # the cloned actor on PickAndPlace (prior=clone): from its own default-parameter memory, and from FetchPush's
+        # (cross-task); stops at the first evaluation at or above 0.9 (frame 0 when the clone alone does it)
+        clone = ["env=pick_and_place", "algo=td3", f"seed={seed}", "prior=clone", "collector.init_random_frames=0"]
+        runs[f"clone-pnp-s{seed}"] = [*clone, f"prior.paths=[{PNP_PRIOR_CLEAN}]"]
         # ... from the noisy-parameter memory (80.2%): only its 401 successful episodes are cloned
-        runs[f"clonenoisy-pnp-s{seed}"] = [*clone, f"memory.prior=[{PNP_PRIOR}]"]
+        runs[f"clonenoisy-pnp-s{seed}"] = [*clone, f"prior.paths=[{PNP_PRIOR}]"]
         # (a probe: the Push clone's success on PickAndPlace at frame 0, and 2500 frames of RL after it)
-        runs[f"clonepush-pnp-s{seed}"] = [*clone, f"memory.prior=[{PUSH_PRIOR_CLEAN}]", "collector.total_frames=2500"]
+        runs[f"clonepush-pnp-s{seed}"] = [*clone, f"prior.paths=[{PUSH_PRIOR_CLEAN}]", "collector.total_frames=2500"]
         # the FetchPush trust region (anchor100-push) on PickAndPlace: its own default-parameter memory, and
         # FetchPush's (cross-task); to 10k frames without the 0.9 stop
-        anchor = ["env=pick_and_place", "algo=td3", f"seed={seed}", "memory.prior_pretrain_bc=4000",
-                  "collector.init_random_frames=0", "memory.freeze_normalizer=true", "memory.clone_anchor=100",
+        anchor = ["env=pick_and_place", "algo=td3", f"seed={seed}", *ANCHOR, "prior.clone_anchor=100",
                   "collector.total_frames=10000", "logger.target_success=null"]
-        runs[f"anchor100-pnp-s{seed}"] = [*anchor, f"memory.prior=[{PNP_PRIOR_CLEAN}]"]
-        runs[f"anchor100push-pnp-s{seed}"] = [*anchor, f"memory.prior=[{PUSH_PRIOR_CLEAN}]"]
+        runs[f"anchor100-pnp-s{seed}"] = [*anchor, f"prior.paths=[{PNP_PRIOR_CLEAN}]"]
+        runs[f"anchor100push-pnp-s{seed}"] = [*anchor, f"prior.paths=[{PUSH_PRIOR_CLEAN}]"]
     return runs
 
 
@@ -123,7 +120,7 @@ RUNS = _runs()
 
 def command(name: str, root: str) -> list[str]:
     """The ``train.py`` command line of run ``name``."""
-    train = os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py")
+    train = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "train.py")
     memory = os.path.join(root, f"{name}.zarr")
     own = {o.split("=", 1)[0] for o in RUNS[name]}
     common = [o for o in COMMON if o.split("=", 1)[0] not in own]  # a run's own settings win

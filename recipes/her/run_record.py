@@ -1,0 +1,147 @@
+"""What a run of the HER recipe keeps of itself: CPU time, progress to resume from, its summary and history.
+
+``train.py`` imports it as ``run_record``; ``recipes.her.tools.compare`` reads
+:func:`first_reach` from it. Like ``utils.py`` it imports no sibling module.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+
+from omegaconf import DictConfig
+from torchrl.checkpoint import Checkpoint
+
+__all__ = ["CpuClock", "append_history", "finish_run", "first_reach", "plot_success", "read_history", "run_progress"]
+
+
+def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dict | None:
+    """Where a stopped run stands, for ``collector.resume=true`` (``None``: start the run fresh).
+
+    The progress is the metadata of the agent checkpoint that the run saves at
+    every evaluation. Nothing to resume (no checkpoint, empty memory) starts a
+    fresh run; a memory with rows but no progress is refused, since its rows
+    would be counted as an earlier run's.
+    """
+    if not cfg.collector.resume:
+        return None
+    if not Checkpoint.is_checkpoint(checkpoint_path):
+        if memory_rows:
+            raise RuntimeError(
+                f"collector.resume=true: the memory holds {memory_rows} transitions but there is no agent "
+                f"checkpoint at {checkpoint_path} to resume from (the run was stopped before its first "
+                "evaluation?). Start it again on a fresh memory.path, or drop collector.resume."
+            )
+        return None
+    meta = Checkpoint.manifest(checkpoint_path).get("metadata") or {}
+    missing = [k for k in ("frames", "curve", "cpu_s", "memory_rows", "memory_rows_before", "updates") if k not in meta]
+    if missing:
+        raise RuntimeError(
+            f"collector.resume=true: the checkpoint at {checkpoint_path} has no run progress ({missing} missing "
+            "from its metadata; written by an older recipe?). Use memory.resume_agent=true to start a new run "
+            "from its networks instead."
+        )
+    if meta.get("env") != cfg.env.name or meta.get("seed") != cfg.seed:
+        raise RuntimeError(
+            f"collector.resume=true: the checkpoint at {checkpoint_path} is of env={meta.get('env')} "
+            f"seed={meta.get('seed')}, this run is env={cfg.env.name} seed={cfg.seed}."
+        )
+    if memory_rows < meta["memory_rows"]:
+        raise RuntimeError(
+            f"collector.resume=true: the memory holds {memory_rows} transitions, fewer than the "
+            f"{meta['memory_rows']} of the checkpoint at {checkpoint_path}: not the memory of this run."
+        )
+    return meta
+
+
+class CpuClock:
+    """Process CPU seconds, with ``paused()`` sections (evaluation) left out."""
+
+    def __init__(self, offset: float = 0.0):
+        self._start = time.process_time() - offset  # offset: CPU-seconds of the run before a resume
+        self._excluded = 0.0
+
+    @contextlib.contextmanager
+    def paused(self):
+        t0 = time.process_time()
+        try:
+            yield
+        finally:
+            self._excluded += time.process_time() - t0
+
+    def seconds(self) -> float:
+        return time.process_time() - self._start - self._excluded
+
+
+def first_reach(curve: list, target: float | None) -> int | None:
+    """Frames of the first evaluation at or above ``target`` (``None``: never, or no target)."""
+    if target is None:
+        return None
+    return next((int(x) for x, y in curve if y >= target), None)
+
+
+def finish_run(cfg: DictConfig, history: list[dict], history_path: str, summary: dict) -> None:
+    """The end of a run: ``summary.json``, one more line of the memory's history, the plot, the report."""
+    with open("summary.json", "w") as f:
+        json.dump(summary, f)
+    append_history(history_path, summary)
+    if cfg.logger.plot:  # this run, and the earlier runs on the same memory
+        curves = {
+            f"run {i + 1}: {run['algo']}, memory of {run['memory_rows_before']} transitions": run["curve"]
+            for i, run in enumerate([*history, summary])
+        }
+        if plot_success(curves, "success_rate.png", title=f"{cfg.env.name}, eval success"):
+            print(f"plot: {os.path.abspath('success_rate.png')}")
+    target, reached_at = cfg.logger.target_success, summary["frames_to_target"]
+    print(
+        f"evaluated success {summary['curve'][-1][1]:.2f} after {summary['frames']} new env frames "
+        f"({summary['cpu_s']:.1f} CPU-s, {summary['updates']} updates); memory now {summary['memory_rows_after']} "
+        "transitions" + (f"; reached {target} at {reached_at} frames" if reached_at is not None else "")
+    )
+    earlier = [run for run in history if run.get("frames_to_target") is not None]
+    if reached_at is not None and earlier:
+        first = earlier[0]["frames_to_target"]
+        print(
+            f"the first run on this memory needed {first} frames to reach {target}; "
+            f"this one {reached_at}: {first - reached_at} fewer"
+        )
+
+
+def read_history(path: str) -> list[dict]:
+    """Summaries of the earlier runs on a memory (one JSON object a line)."""
+    try:
+        with open(path) as f:
+            return [json.loads(line) for line in f if line.strip()]
+    except FileNotFoundError:
+        return []
+
+
+def append_history(path: str, summary: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(summary) + "\n")
+
+
+def plot_success(curves: dict[str, list[tuple[int, float]]], path: str, title: str = "") -> bool:
+    """Writes success rate vs env frames (one line per curve) to ``path``; False without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, points in curves.items():
+        if points:
+            frames, success = zip(*points)
+            ax.plot(frames, success, marker="o", markersize=3, label=label)
+    ax.axhline(0.95, color="grey", lw=0.8, ls="--")
+    ax.set(xlabel="env frames collected in this run", ylabel="eval success rate", ylim=(-0.02, 1.02), title=title)
+    ax.grid(alpha=0.3)
+    if len(curves) > 1:
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
