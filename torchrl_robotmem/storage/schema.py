@@ -29,8 +29,12 @@ from tensordict.base import _is_leaf_nontensor
 from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, treespec_loads
 
 from . import _backend
+from .format import ARRAY_CONFIG
 
-__all__ = ["DataKind", "PackedLayout", "check_against", "spec_of", "split_constants", "with_constants"]
+__all__ = [
+    "DataKind", "PackedLayout", "check_against", "create_arrays", "default_chunk_rows", "spec_of", "split_constants",
+    "with_constants",
+]
 
 
 # -- data kinds ------------------------------------------------------------------------
@@ -314,3 +318,48 @@ def env_names_of(value: Any, n: int) -> list[str] | None:
     if isinstance(value, NonTensorData):
         return [str(value.data)] * n
     return None
+
+
+# -- the store's arrays ------------------------------------------------------------------
+
+
+def default_chunk_rows(row_bytes: int, max_dim0: int) -> int:
+    """Rows per chunk: ~4 MiB of rows, large enough for fast sequential I/O, small enough
+    that a commit of a partial chunk stays cheap (a power of two in 1024..65536, at most ``max_dim0``).
+
+    Example:
+        >>> default_chunk_rows(64, 10**6), default_chunk_rows(64, 100)
+        (65536, 100)
+    """
+    target = max(1024, min(65536, 2 ** round(math.log2(max(1, (4 << 20) // max(row_bytes, 1))))))
+    return min(target, max_dim0)
+
+
+def create_arrays(group: Any, schema: dict[str, dict], *, rows: int, inner_shape: tuple, chunk_rows: int,
+                  compressor: str | None, level: int) -> dict[str, Any]:
+    """Creates (replacing) one Zarr array per column of ``schema``; returns them by path.
+
+    Every chunk is written, an all-zero one too (:data:`~.format.ARRAY_CONFIG`): a
+    missing chunk file is damage.
+
+    Args:
+        group: the store's Zarr group.
+        schema (dict): ``{path: {"dtype": str, "shape": list}}``.
+
+    Keyword Args:
+        rows (int): rows along the first dimension.
+        inner_shape (tuple): the item shape after the first dimension.
+        chunk_rows (int): rows per chunk.
+        compressor (str, optional): ``"blosc"``, ``"zstd"`` or ``None``.
+        level (int): codec level.
+    """
+    out = {}
+    for path, spec in schema.items():
+        dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
+        shape = (rows, *inner_shape, *spec["shape"])
+        out[path] = group.create_array(
+            path, shape=shape, chunks=(chunk_rows, *shape[1:]), dtype=dtype,
+            compressors=_backend.make_compressors(compressor, level, dtype.itemsize),
+            fill_value=0, overwrite=True, config=ARRAY_CONFIG,
+        )
+    return out

@@ -30,13 +30,15 @@ from . import _backend, integrity, lifecycle, writer_sync
 from ._backend import FORMAT_MARKER
 from .checkpointer import ZarrCheckpointer
 from .commit import CommitEngine
-from .format import writing_config
+from .errors import IntegrityError
+from .format import write_zero_chunks, writing_config, writing_handles
 from .handle import StoreHandle
 from .journal import replay_journal
 from .mirror import RamMirror
 from .planner import DROPPED_KEYS, StoreView, WritePlan, check_constants, cursor_rows, plan_write, validate
-from .schema import DataKind, PackedLayout, spec_of, split_constants, with_constants
-from .tags import TAG_KEYS, UNKNOWN_ENV, EpisodeTagger, open_episode_ends
+from .registry import TagRegistry
+from .schema import DataKind, PackedLayout, create_arrays, default_chunk_rows, spec_of, split_constants, with_constants
+from .tags import TAG_KEYS, UNKNOWN_ENV, open_episode_ends
 
 __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
 
@@ -163,32 +165,9 @@ class ZarrStorage(LazyTensorStorage):
         sample_tags: bool = False,
         on_damage: str = "raise",
     ) -> None:
-        if isinstance(path, (int, np.integer)) and not isinstance(path, bool):
-            raise TypeError(
-                f"ZarrStorage's first argument is the store's path; got the number {path}. "
-                f"Use ZarrStorage(path, max_size), e.g. functools.partial(ZarrStorage, 'memory/run.zarr')."
-            )
-        if max_size is not None and int(max_size) <= 0:
-            raise ValueError(f"max_size must be a positive integer, got {max_size}.")
-        if chunk_rows is not None and int(chunk_rows) <= 0:
-            raise ValueError(f"chunk_rows must be a positive integer, got {chunk_rows}.")
-        if commit_interval <= 0:
-            raise ValueError(f"commit_interval must be > 0 seconds, got {commit_interval}.")
-        if int(ndim) < 1:
-            raise ValueError(f"ndim must be >= 1, got {ndim}.")
-        if shared_init:
-            raise ValueError(
-                "ZarrStorage(shared_init=True) is not supported: a store has one writer process. "
-                "Write from the main process (iterate the collector there and call rb.extend), and "
-                "give other processes read-only handles: pickle the storage (it arrives read_only) "
-                "or open ZarrStorage(path, read_only=True) there."
-            )
-        _backend.make_compressors(compressor, compression_level, 4)  # validates the name
-        if on_damage not in ("raise", "warn") or (on_damage == "warn" and not read_only):
-            raise ValueError(
-                f"on_damage must be 'raise', or 'warn' with read_only=True (a damaged store is not "
-                f"opened for writing: run `robotmem repair PATH`), got {on_damage!r} with read_only={read_only}."
-            )
+        _check_arguments(path, max_size, chunk_rows=chunk_rows, commit_interval=commit_interval, ndim=ndim,
+                         shared_init=shared_init, compressor=compressor, compression_level=compression_level,
+                         on_damage=on_damage, read_only=read_only)
         self._on_damage = on_damage
         self._commit_process = commit_process
         self._handle = StoreHandle(path, read_only=read_only, storage_options=storage_options)
@@ -240,6 +219,7 @@ class ZarrStorage(LazyTensorStorage):
         stored_max = int(attrs["max_size"])
         super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
         self._mirror = RamMirror(stored_max, ndim=self.ndim, device=self.device, length=self.__len__)
+        self._tags = TagRegistry(read_only=self.read_only)
         self._engine = CommitEngine(
             self._mirror, self._handle.group, record=self._meta_snapshot, commit_interval=commit_interval,
             background=background, name=str(self.path),
@@ -248,8 +228,6 @@ class ZarrStorage(LazyTensorStorage):
         self._engine.handle = handle  # the worker gets a copy of its writer lock's descriptor
         self._sync_attrs(attrs)
         # This session's state.
-        self._run: int | None = None  # allocated at the first write
-        self._env_code = UNKNOWN_ENV
         self._restored_writers: weakref.WeakSet = weakref.WeakSet()
         self._warned_items = False
         self._own_writes = 0  # depth of this class's own writes (see _bump_mutation_revision)
@@ -262,7 +240,7 @@ class ZarrStorage(LazyTensorStorage):
         if env is not None and not self.read_only:
             self.env = env
         if not self.read_only:
-            self._engine.arrays.update(integrity.writing_handles(self._handle.group, self._mirror.schema or ()))
+            self._engine.arrays.update(writing_handles(self._handle.group, self._mirror.schema or ()))
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._mirror.schema is not None:
                 self._close_open_episodes()
@@ -276,9 +254,7 @@ class ZarrStorage(LazyTensorStorage):
         self._mirror.inner_shape = tuple(inner) if inner is not None else ()
         self._mirror.chunk_rows = attrs.get("chunk_rows")
         self._mirror.configure(attrs.get("schema"))
-        self._env_names: list[str] = list(attrs.get("env_names", []))
-        self._tagger = EpisodeTagger(int(attrs.get("episode_next", 0)))
-        self._runs = int(attrs.get("runs", 0))
+        self._tags.sync(attrs)
         self._write_count = int(attrs.get("write_count", 0))
         self._writer_cursor = int(attrs.get("cursor", 0))
         self._engine.set_committed(attrs)
@@ -338,8 +314,7 @@ class ZarrStorage(LazyTensorStorage):
         if n and "episode" in self._mirror.schema:
             # Rows past the committed metadata may survive a crash (journal
             # replays): never hand out an id that a stored row already uses.
-            self._tagger.next_id = max(self._tagger.next_id, int(self._mirror.views.get("episode")[:n0].max()) + 1)
-            self._runs = max(self._runs, int(self._mirror.views.get("run")[:n0].max()) + 1)
+            self._tags.note_stored(self._mirror.views.get("episode")[:n0].max(), self._mirror.views.get("run")[:n0].max())
         with self._own_write():
             self._bump_mutation_revision()
 
@@ -354,9 +329,9 @@ class ZarrStorage(LazyTensorStorage):
             return n
         action = "A chunk file disappeared while the rows were read (is `robotmem repair` running?); no row was served."
         if not (self.read_only and self._on_damage == "warn"):
-            raise integrity.IntegrityError(self.path, problems, read_only=self.read_only, action=action)
+            raise IntegrityError(self.path, problems, read_only=self.read_only, action=action)
         cut = min(p.rows[0] for p in problems)
-        warnings.warn(f"{integrity.IntegrityError(self.path, problems, action='')}\non_damage='warn': reading the "
+        warnings.warn(f"{IntegrityError(self.path, problems, action='')}\non_damage='warn': reading the "
                       f"{cut} rows before the first missing chunk.", stacklevel=4)
         return min(n, cut * self._mirror.inner_numel)
 
@@ -374,7 +349,7 @@ class ZarrStorage(LazyTensorStorage):
     def close_episode_at(self, row: int) -> None:
         """Ends the open episode at ``row`` (done/truncated), for writers that learn of a boundary late."""
         with self._engine.cv:
-            self._tagger.close_stream()
+            self._tags.tagger.close_stream()
         self._mark_truncated(torch.tensor([row]))
         self._engine.kick()  # (the revision bump happens inside _mark_truncated)
 
@@ -408,16 +383,16 @@ class ZarrStorage(LazyTensorStorage):
     @property
     def env_names(self) -> tuple[str, ...]:
         """Environment names; the ``"env"`` column holds indices into this tuple (-1: unknown)."""
-        return tuple(self._env_names)
+        return tuple(self._tags.env_names)
 
     @property
     def env(self) -> str | None:
         """The environment name rows written from now on are tagged with."""
-        return None if self._env_code == UNKNOWN_ENV else self._env_names[self._env_code]
+        return self._tags.env
 
     @env.setter
     def env(self, name: str | None) -> None:
-        self._env_code = UNKNOWN_ENV if name is None else self.env_code(name, create=True)
+        self._tags.env_code = UNKNOWN_ENV if name is None else self.env_code(name, create=True)
 
     def env_code(self, name: str, *, create: bool = False) -> int:
         """The integer code of an environment name.
@@ -428,18 +403,11 @@ class ZarrStorage(LazyTensorStorage):
         Keyword Args:
             create (bool): register the name if it is new (writers only).
         """
-        if not isinstance(name, str) or not name:
-            raise TypeError(f"An environment name must be a non-empty string, got {name!r}.")
-        if name in self._env_names:
-            return self._env_names.index(name)
-        if not create:
-            raise ValueError(f"Unknown env {name!r}; this store knows {self._env_names}.")
-        if self.read_only:
-            raise RuntimeError(f"Cannot register env {name!r} in a store opened read_only.")
         with self._engine.cv:
-            self._env_names.append(name)
-            self._engine.mark_meta_dirty()
-        return len(self._env_names) - 1
+            code, added = self._tags.code(name, create=create)
+            if added:
+                self._engine.mark_meta_dirty()
+        return code
 
     @property
     def local_dir(self) -> str | None:
@@ -634,7 +602,7 @@ class ZarrStorage(LazyTensorStorage):
 
     def _plan_view(self) -> StoreView:
         return StoreView(self.path, self.ndim, self.initialized, self._mirror, self._kind, self._constants,
-                         self._env_names, self._env_code)
+                         self._tags.env_names, self._tags.env_code)
 
     def _register(self, plan: WritePlan) -> TensorDictBase:
         """What a valid plan changes in the store's bookkeeping; returns the rows to write.
@@ -651,9 +619,7 @@ class ZarrStorage(LazyTensorStorage):
             self._kind = plan.kind  # recorded with the schema at the first write
         if plan.draw is not None:
             done, traj, continue_open = plan.draw
-            episode = self._tagger.assign(done, traj, continue_open=continue_open)
-            if not continue_open:
-                self._tagger.reset()  # [items, time...] layouts: nothing continues across writes
+            episode = self._tags.draw(done, traj, continue_open=continue_open)
             plan.set_tags(episode.reshape(plan.lead), torch.full(plan.lead, self._current_run(), dtype=torch.long))
         return plan.rows()
 
@@ -669,11 +635,10 @@ class ZarrStorage(LazyTensorStorage):
         validate(view, data, False)
 
     def _current_run(self) -> int:
-        if self._run is None:
-            self._run = self._runs
-            self._runs += 1
+        run, new = self._tags.current_run()
+        if new:
             self._engine.mark_meta_dirty()
-        return self._run
+        return run
 
     def _init_schema(self, data: TensorDictBase, single: bool) -> None:
         row = data if single else data[0]
@@ -681,10 +646,7 @@ class ZarrStorage(LazyTensorStorage):
         self._mirror.inner_shape = tuple(row.batch_size)
         row_bytes = PackedLayout(schema).row_bytes * self._mirror.inner_numel
         if self._mirror.chunk_rows is None:
-            # ~4 MiB of rows per chunk group: large enough for fast sequential I/O,
-            # small enough that a commit of a partial chunk stays cheap.
-            target = max(1024, min(65536, 2 ** round(math.log2(max(1, (4 << 20) // max(row_bytes, 1))))))
-            self._mirror.chunk_rows = min(target, self._mirror.max_dim0)
+            self._mirror.chunk_rows = default_chunk_rows(row_bytes, self._mirror.max_dim0)
         self.max_size = self._mirror.max_size = self._mirror.max_dim0 * self._mirror.inner_numel  # as TorchRL rounds it for ndim > 1
         self._create_arrays(schema)
         self._mirror.configure(schema)
@@ -702,23 +664,13 @@ class ZarrStorage(LazyTensorStorage):
         )
 
     def _create_arrays(self, schema: dict[str, dict]) -> None:
-        for path, spec in schema.items():
-            dtype = _backend.torch_dtype(spec["dtype"])
-            shape = (self._mirror.max_dim0, *self._mirror.inner_shape, *spec["shape"])
-            self._engine.arrays[path] = self._handle.group.create_array(
-                path,
-                shape=shape,
-                chunks=(self._mirror.chunk_rows, *shape[1:]),
-                dtype=_backend.numpy_dtype(dtype),
-                compressors=_backend.make_compressors(
-                    self._compressor, self._compression_level, _backend.numpy_dtype(dtype).itemsize
-                ),
-                fill_value=0,
-                overwrite=True,
-                config=integrity.ARRAY_CONFIG,  # all-zero chunks written too: a missing one is damage
-            )
-            if self.initialized:  # a key added later: its older rows are zeros, in chunk files
-                integrity.write_zero_chunks(self._engine.arrays[path], self._len_along_dim0, self._mirror.chunk_rows)
+        m = self._mirror
+        arrays = create_arrays(self._handle.group, schema, rows=m.max_dim0, inner_shape=m.inner_shape,
+                               chunk_rows=m.chunk_rows, compressor=self._compressor, level=self._compression_level)
+        self._engine.arrays.update(arrays)
+        if self.initialized:  # keys added later: their older rows are zeros, in chunk files
+            for arr in arrays.values():
+                write_zero_chunks(arr, self._len_along_dim0, m.chunk_rows)
 
     def _evolve_schema(self, data: TensorDictBase, new_paths: list[str], single: bool) -> None:
         """Adds columns for keys the store did not hold yet (older rows read zeros)."""
@@ -748,7 +700,7 @@ class ZarrStorage(LazyTensorStorage):
             super()._empty()
             self._writer_cursor = 0
             self._write_count = 0  # as TorchRL's writer restarts its count
-            self._tagger.reset()
+            self._tags.tagger.reset()
             self._engine.mark_meta_dirty()
         self.flush()
 
@@ -778,10 +730,7 @@ class ZarrStorage(LazyTensorStorage):
             "cursor": self._writer_cursor,
             "last_cursor": -1 if last is None else int(last),
             "write_count": self._write_count,
-            "episode_next": self._tagger.next_id,
-            "runs": self._runs,
-            "env_names": list(self._env_names),
-            "env": self.env,
+            **self._tags.record(),
         }
 
     @property
@@ -865,6 +814,7 @@ class ZarrStorage(LazyTensorStorage):
         saved = dict(self.__dict__)
         saved_group = self._handle.group
         mirror_state = dict(vars(self._mirror))
+        tags_state = dict(vars(self._tags))
         engine_state = {k: v for k, v in vars(self._engine).items() if k in ("group", "committed_len", "committed_write_count")}
         try:
             group = _backend.open_group(self._handle.store, read_only=True)
@@ -886,6 +836,7 @@ class ZarrStorage(LazyTensorStorage):
             self.__dict__.update(saved)
             self._handle.group = saved_group
             vars(self._mirror).update(mirror_state)
+            vars(self._tags).update(tags_state)
             vars(self._engine).update(engine_state)
             raise
         return len(self)
@@ -909,7 +860,7 @@ class ZarrStorage(LazyTensorStorage):
                 "store": self.path if isinstance(self.path, str) else None,
                 "write_count": self._write_count,
                 "cursor": self._writer_cursor,
-                "env_names": list(self._env_names),
+                "env_names": list(self._tags.env_names),
                 "kind": self._kind.to_json(),
                 "ndim": self.ndim,
                 "tags": tags,
@@ -956,8 +907,7 @@ class ZarrStorage(LazyTensorStorage):
             self._writer_cursor = int(meta.get("cursor", n0 % self._mirror.max_dim0)) % self._mirror.max_dim0
             self._write_count = int(meta.get("write_count", n0))
             if tags is not None:
-                self._tagger.next_id = max(self._tagger.next_id, int(rows.get("episode").max()) + 1)
-                self._runs = max(self._runs, int(rows.get("run").max()) + 1)
+                self._tags.note_stored(rows.get("episode").max(), rows.get("run").max())
             with self._engine.cv:
                 self._engine.mark_meta_dirty()
         self._restore_writers(force=True)
@@ -1014,11 +964,42 @@ class ZarrStorage(LazyTensorStorage):
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(path={self.path!r}, len={len(self)}, max_size={self.max_size}, "
-            f"read_only={self.read_only}, envs={list(self._env_names)})"
+            f"read_only={self.read_only}, envs={list(self._tags.env_names)})"
         )
 
 
 # -- helpers ------------------------------------------------------------------------------
+
+
+def _check_arguments(path, max_size, *, chunk_rows, commit_interval, ndim, shared_init, compressor,
+                     compression_level, on_damage, read_only) -> None:
+    """Raises, saying what to pass instead, on constructor arguments ZarrStorage refuses."""
+    if isinstance(path, (int, np.integer)) and not isinstance(path, bool):
+        raise TypeError(
+            f"ZarrStorage's first argument is the store's path; got the number {path}. "
+            f"Use ZarrStorage(path, max_size), e.g. functools.partial(ZarrStorage, 'memory/run.zarr')."
+        )
+    if max_size is not None and int(max_size) <= 0:
+        raise ValueError(f"max_size must be a positive integer, got {max_size}.")
+    if chunk_rows is not None and int(chunk_rows) <= 0:
+        raise ValueError(f"chunk_rows must be a positive integer, got {chunk_rows}.")
+    if commit_interval <= 0:
+        raise ValueError(f"commit_interval must be > 0 seconds, got {commit_interval}.")
+    if int(ndim) < 1:
+        raise ValueError(f"ndim must be >= 1, got {ndim}.")
+    if shared_init:
+        raise ValueError(
+            "ZarrStorage(shared_init=True) is not supported: a store has one writer process. "
+            "Write from the main process (iterate the collector there and call rb.extend), and "
+            "give other processes read-only handles: pickle the storage (it arrives read_only) "
+            "or open ZarrStorage(path, read_only=True) there."
+        )
+    _backend.make_compressors(compressor, compression_level, 4)  # validates the name
+    if on_damage not in ("raise", "warn") or (on_damage == "warn" and not read_only):
+        raise ValueError(
+            f"on_damage must be 'raise', or 'warn' with read_only=True (a damaged store is not "
+            f"opened for writing: run `robotmem repair PATH`), got {on_damage!r} with read_only={read_only}."
+        )
 
 
 def _open_read_only(path: str, storage_options: dict | None, device: str) -> ZarrStorage:
