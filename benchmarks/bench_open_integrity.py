@@ -49,7 +49,7 @@ def main() -> None:
         for start in range(0, args.rows, 20_000):
             n = min(20_000, args.rows - start)
             s.set(slice(start, start + n), make_transitions(n, start))
-        chunk_rows, narrays = s.chunk_rows, len(s._schema)
+        chunk_rows, narrays = s.chunk_rows, len(s._mirror.schema)
     files = sum(1 for p in path.rglob("*") if p.is_file())
 
     def open_close():
@@ -63,11 +63,11 @@ def main() -> None:
     finally:
         integrity.check_open = original
     s = ZarrStorage(path, read_only=True)
-    attrs = s._group.attrs.asdict()
-    arrays = {p: s._group[p] for p in attrs["schema"]}
-    listing = _median(lambda: integrity.missing_chunks(arrays, attrs, store=s._store, local_dir=s._local_dir),
+    attrs = s._handle.group.attrs.asdict()
+    arrays = {p: s._handle.group[p] for p in attrs["schema"]}
+    listing = _median(lambda: integrity.missing_chunks(arrays, attrs, store=s._handle.store, local_dir=s._handle.local_dir),
                       args.repeat)
-    after_read = _median(lambda: integrity.missing_after_read(s._group, attrs, store=s._store, local_dir=s._local_dir),
+    after_read = _median(lambda: integrity.missing_after_read(s._handle.group, attrs, store=s._handle.store, local_dir=s._handle.local_dir),
                          args.repeat)
     s.close()
     verify = _median(lambda: integrity.verify(path), max(1, args.repeat // 2))

@@ -153,7 +153,7 @@ def test_writer_lease(s3_url, s3_server, monkeypatch):
     storage.flush()
     client.put_object(Bucket=bucket, Key=key + ".writer-lease", Body=b'{"host": "elsewhere", "ttl": 30}')
     deadline = time.monotonic() + 10
-    while storage._lock_file.lost is None and time.monotonic() < deadline:
+    while storage._handle.lock.lost is None and time.monotonic() < deadline:
         time.sleep(0.05)
     with pytest.raises(RuntimeError, match="lost the writer lock"):
         rb.extend(make_transitions(10, 10))

@@ -479,7 +479,7 @@ def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):
     rb.extend(make_rows(torch.arange(10)))
     try:
         assert started.wait(60), "the timer commit never started"
-        assert not st._dirty and st._inflight == 1, "the commit is not in flight: the scenario is not exercised"
+        assert not st._engine.dirty and st._engine.inflight == 1, "the commit is not in flight: the scenario is not exercised"
         returned = []
 
         def flush():

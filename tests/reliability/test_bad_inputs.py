@@ -296,7 +296,7 @@ def test_bad_input(case: Case, ctx: Ctx):
         case.action(ctx)
     message = str(info.value)
     assert len(message) > 20, f"an unclear error: {message!r}"
-    if not ctx.st._closed:
+    if not ctx.st._handle.closed:
         ctx.st.flush()
         assert ctx.rb.writer.state_dict() == writer, "the buffer's writer moved"
         assert len(ctx.st) == ROWS or case.damages

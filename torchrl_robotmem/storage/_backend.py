@@ -252,6 +252,11 @@ class WriterLock:
                 f"read_only=True to read while it is being written."
             )
 
+    @property
+    def fd(self) -> int | None:
+        """The locked directory's file descriptor (``None`` once released): a commit worker gets a copy."""
+        return self._fd
+
     def release(self) -> None:
         if self._fd is not None:
             fcntl.flock(self._fd, fcntl.LOCK_UN)

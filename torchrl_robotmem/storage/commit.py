@@ -162,7 +162,7 @@ class CommitEngine:
         Another handle, or this process before the switch, may have written the
         store since the worker last saw it: it reopens the group and its arrays.
         """
-        fd = getattr(getattr(self.handle, "lock", None), "_fd", None)
+        fd = getattr(getattr(self.handle, "lock", None), "fd", None)
         self._worker.request({"op": "open", "path": self.worker_path}, fds=[fd] if fd is not None else [])
         self._worker_synced = True
 

@@ -18,6 +18,7 @@ Example:
 """
 from __future__ import annotations
 
+import warnings
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -25,7 +26,8 @@ from typing import Any
 import torchrl
 
 from .._version import __version__
-from . import _backend, lifecycle
+from . import _backend, integrity, lifecycle
+from .errors import IntegrityError
 from .format import FORMAT_MARKER, FORMAT_VERSION, MARKER
 
 __all__ = ["StoreHandle"]
@@ -177,6 +179,14 @@ class StoreHandle:
 
     # -- writing and closing -------------------------------------------------------------------
 
+    def check_shareable(self) -> None:
+        """Raises unless another process can open this store (pickling gives it a read-only handle)."""
+        if not isinstance(self.path, str) or self.path.startswith("memory://"):
+            raise RuntimeError(
+                f"A ZarrStorage on {self.path!r} cannot be sent to another process: the store lives "
+                f"in this process's memory. Use a directory or a shared URL store."
+            )
+
     def check_writable(self) -> None:
         """Raises, saying why and what to do, unless rows may be written through this handle."""
         if self.read_only and self.received:
@@ -203,6 +213,25 @@ class StoreHandle:
             )
         if self.lock is not None:
             self.lock.check()  # an object-store lease can be lost
+
+    def check_read(self, attrs: dict, n: int, *, on_damage: str, inner_numel: int) -> int:
+        """Lists the chunk files below ``attrs["len"]`` again, after the rows were read; returns the rows to keep.
+
+        Zarr reads a chunk file that is gone as zeros: one missing now (moved away
+        by ``robotmem repair`` since the open's listing) raises an
+        :class:`IntegrityError` naming it (``on_damage="warn"`` on a reader: a
+        warning, and only the ``n`` rows before it are kept).
+        """
+        problems = integrity.missing_after_read(self.group, attrs, store=self.store, local_dir=self.local_dir)
+        if not problems:
+            return n
+        action = "A chunk file disappeared while the rows were read (is `robotmem repair` running?); no row was served."
+        if not (self.read_only and on_damage == "warn"):
+            raise IntegrityError(self.path, problems, read_only=self.read_only, action=action)
+        cut = min(p.rows[0] for p in problems)
+        warnings.warn(f"{IntegrityError(self.path, problems, action='')}\non_damage='warn': reading the "
+                      f"{cut} rows before the first missing chunk.", stacklevel=5)
+        return min(n, cut * inner_numel)
 
     def release(self) -> None:
         """Marks the handle closed, releases the writer lock and the store. Idempotent."""

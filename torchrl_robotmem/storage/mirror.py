@@ -31,15 +31,18 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 
 from . import _backend
 from .format import read_rows
 from .journal import PREFIX, journal_chunks
 from .schema import PackedLayout
-from .tags import TAG_KEYS
+from .tags import TAG_KEYS, open_episode_ends
 
-__all__ = ["RamMirror"]
+__all__ = ["RamMirror", "DONE_KEY", "TRUNCATED_KEY"]
+
+DONE_KEY = ("next", "done")
+TRUNCATED_KEY = ("next", "truncated")
 
 
 class RamMirror:
@@ -142,6 +145,42 @@ class RamMirror:
                 col = self.lead(col)
             out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
         return out
+
+    def write(self, cursor, data: TensorDictBase) -> None:
+        """Writes the prepared rows ``data`` at ``cursor`` (along the first dimension) into the views."""
+        if isinstance(data, LazyStackedTensorDict) and data.stack_dim == 0:
+            self.views.update_at_(data, cursor)  # each stacked TensorDict written in place
+        elif isinstance(cursor, slice) and isinstance(data, TensorDict):
+            # hot path (appends): one copy per leaf into its column, no TensorDict machinery
+            for key, value in data.items(include_nested=True, leaves_only=True):
+                self.columns[key][cursor].copy_(value)
+        else:
+            self.views[cursor] = data
+
+    # -- episode ends ----------------------------------------------------------------
+
+    def mark_done(self, rows: torch.Tensor) -> torch.Tensor:
+        """Sets ``("next", "done")`` and ``("next", "truncated")`` (if stored) on flat ``rows``.
+
+        Returns the first-dimension rows written, for the commit engine to mark dirty.
+        """
+        for key in (DONE_KEY, TRUNCATED_KEY):
+            if key == DONE_KEY or key in self.views.keys(True, True):
+                col = self.views.get(key)
+                (col.reshape(-1, *col.shape[self.ndim:]) if self.ndim > 1 else col)[rows] = True
+        return torch.div(rows, self.inner_numel, rounding_mode="floor")
+
+    def open_episode_ends(self, n: int, cursor: int, *, full: bool) -> torch.Tensor:
+        """The last row of every episode among the first ``n`` transitions that no done ends.
+
+        ``cursor`` is the writer's position along the first dimension; ``full`` whether
+        the buffer has wrapped around. Empty without rows, a done column or episode tags.
+        """
+        if n == 0 or DONE_KEY not in self.views.keys(True, True) or "episode" not in self.schema:
+            return torch.zeros(0, dtype=torch.long)
+        flat = {k: v.cpu() for k, v in self.flat_columns(("run", "episode", DONE_KEY), n).items()}
+        done = flat[DONE_KEY].reshape(n, -1).any(-1)
+        return open_episode_ends(flat["run"], flat["episode"], done, cursor=cursor * self.inner_numel, full=full)
 
     # -- what the commit engine reads ------------------------------------------------
 

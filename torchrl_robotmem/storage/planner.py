@@ -34,7 +34,8 @@ from . import _backend
 from .schema import DataKind, check_against, env_names_of, split_constants
 from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag
 
-__all__ = ["StoreView", "WritePlan", "check_constants", "cursor_rows", "is_int_cursor", "plan_write", "validate"]
+__all__ = ["StoreView", "WritePlan", "check_constants", "completes_chunk", "cursor_rows", "is_int_cursor", "last_index",
+           "check_rows", "plan_write", "validate", "write_span"]
 
 DONE_KEY = ("next", "done")
 TRAJ_KEY = ("collector", "traj_ids")
@@ -134,6 +135,68 @@ def cursor_rows(cursor, max_size: int) -> torch.Tensor:
     if isinstance(cursor, range):
         return torch.tensor(list(cursor), dtype=torch.long)
     return torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()
+
+
+def write_span(cursor, data, rows: torch.Tensor) -> tuple[Any, torch.Tensor | slice]:
+    """The cursor to write ``data`` at and the rows to mark dirty: contiguous ``rows`` become a slice.
+
+    A slice cursor is a view copy (about 2x an index_put); tuple cursors and lazy
+    stacks keep theirs.
+
+    Example:
+        >>> import torch
+        >>> write_span(torch.arange(2, 5), None, torch.arange(2, 5))
+        (slice(2, 5, None), slice(2, 5, None))
+    """
+    if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
+        dirty = slice(int(rows[0]), int(rows[-1]) + 1)
+        if not isinstance(cursor, tuple) and not isinstance(data, LazyStackedTensorDict):
+            cursor = dirty
+        return cursor, dirty
+    return cursor, rows
+
+
+def check_rows(view: StoreView, data: TensorDictBase) -> None:
+    """Raises, naming the key, unless ``data`` (batch ``[N]``) could be written to the store of ``view``.
+
+    The tag columns (``episode``, ``run``, ``env``) are ignored; a store with no rows
+    yet accepts any supported dtypes.
+    """
+    data = data.exclude(*TAG_KEYS, *DROPPED_KEYS)
+    check_constants(view, split_constants(data))
+    validate(view, data, False)
+
+
+def completes_chunk(rows: torch.Tensor, chunk_rows: int) -> bool:
+    """Whether a write at ``rows`` completed a chunk: only then is the commit thread woken (its timer covers the rest).
+
+    Example:
+        >>> import torch
+        >>> completes_chunk(torch.arange(0, 3), 4), completes_chunk(torch.arange(1, 4), 4)
+        (False, True)
+    """
+    first, last = int(rows[0]), int(rows[-1])
+    return (last + 1) % chunk_rows == 0 or len(rows) > chunk_rows or first // chunk_rows != last // chunk_rows
+
+
+def last_index(last) -> int | None:
+    """The last row of a TorchRL writer cursor (``_last_cursor``: int, slice, range, list, tensor), or ``None``.
+
+    Example:
+        >>> last_index(slice(3, 7)), last_index([1, 2]), last_index(None)
+        (6, 2, None)
+    """
+    if last is None:
+        return None
+    if isinstance(last, torch.Tensor):
+        return int(last.reshape(-1)[-1]) if last.numel() else None
+    if isinstance(last, slice):
+        return last.stop - 1
+    if isinstance(last, range):
+        return last[-1] if len(last) else None
+    if isinstance(last, (list, tuple)):
+        return int(last[-1]) if last else None
+    return int(last)
 
 
 def expand_tag(value, lead: torch.Size, batch: torch.Size) -> torch.Tensor:

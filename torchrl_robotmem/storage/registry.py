@@ -107,6 +107,17 @@ class TagRegistry:
             self.tagger.reset()
         return ids
 
+    def tag_rows(self, plan) -> bool:
+        """Draws the episode ids and this session's run for a write plan's rows (``plan.set_tags``).
+
+        Returns whether the run was allocated now (the record changed).
+        """
+        done, traj, continue_open = plan.draw
+        episode = self.draw(done, traj, continue_open=continue_open)
+        run, new = self.current_run()
+        plan.set_tags(episode.reshape(plan.lead), torch.full(plan.lead, run, dtype=torch.long))
+        return new
+
     def note_stored(self, episode_max: int, run_max: int) -> None:
         """Never hands out an id that a stored row already uses (rows past the committed record)."""
         self.tagger.next_id = max(self.tagger.next_id, int(episode_max) + 1)
