@@ -286,7 +286,10 @@ def test_a_killed_run_resumes_from_its_last_evaluation(tmp_path):
     meta = {}
     while time.monotonic() < deadline and proc.poll() is None:
         if Checkpoint.is_checkpoint(agent):
-            meta = Checkpoint.manifest(agent)["metadata"]
+            try:
+                meta = Checkpoint.manifest(agent)["metadata"]
+            except FileNotFoundError:  # caught between the two moves of a save: read it at the next poll
+                continue
             if meta["frames"] >= 50:
                 break
         time.sleep(0.05)
@@ -578,3 +581,43 @@ def test_clone_sensitivity_reports_success_against_weight_noise(tmp_path):
     jsonl.write_text("\n".join(json.dumps(r) for r in rows))
     main(["unused", "--replot", str(jsonl), "--plot", str(tmp_path / "s.png")])
     assert (tmp_path / "s.png").stat().st_size > 0
+
+
+_KILL_MID_SAVE = """
+import os, signal, sys
+import torch
+from torchrl.checkpoint import Checkpoint
+
+path = sys.argv[1]
+net = torch.nn.Linear(3, 2)
+torch.nn.init.constant_(net.weight, 1.0)
+Checkpoint(net=net).save(path, metadata={"version": 1})
+torch.nn.init.constant_(net.weight, 2.0)
+real_replace = os.replace
+
+def replace_then_die(src, dst):
+    real_replace(src, dst)
+    os.kill(os.getpid(), signal.SIGKILL)  # after the old checkpoint moved aside, before the new one moved in
+
+os.replace = replace_then_die
+Checkpoint(net=net).save(path, metadata={"version": 2})
+"""
+
+
+def test_an_agent_checkpoint_a_kill_caught_mid_save_is_put_back(tmp_path):
+    """A process SIGKILLed between the two moves of ``Checkpoint.save`` leaves only the backup: it is restored."""
+    from torchrl.checkpoint import Checkpoint
+
+    from recipes.her.run_record import recover_checkpoint
+
+    agent = tmp_path / "mem.zarr-agent"
+    proc = subprocess.run([sys.executable, "-c", _KILL_MID_SAVE, str(agent)], capture_output=True, text=True)
+    assert proc.returncode == -9, proc.stderr[-2000:]
+    assert not agent.exists(), "the kill was meant to land between the two moves of the save"
+    backup = recover_checkpoint(str(agent))
+    assert backup is not None and Path(backup).name.startswith(".mem.zarr-agent.backup-")
+    assert Checkpoint.manifest(agent)["metadata"] == {"version": 1}
+    net = torch.nn.Linear(3, 2)
+    Checkpoint(net=net).load(agent)
+    assert bool((net.weight == 1.0).all())
+    assert recover_checkpoint(str(agent)) is None  # a checkpoint in place is left alone

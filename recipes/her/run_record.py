@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import os
 import time
@@ -13,7 +14,33 @@ import time
 from omegaconf import DictConfig
 from torchrl.checkpoint import Checkpoint
 
-__all__ = ["CpuClock", "append_history", "finish_run", "first_reach", "plot_success", "read_history", "run_progress"]
+__all__ = ["CpuClock", "append_history", "finish_run", "first_reach", "plot_success", "read_history",
+           "recover_checkpoint", "run_progress"]
+
+
+def recover_checkpoint(checkpoint_path: str) -> str | None:
+    """Puts back an agent checkpoint that a kill caught mid-save; returns the backup used, if any.
+
+    ``torchrl.checkpoint.Checkpoint.save`` publishes a new checkpoint by moving
+    the old one aside (``.NAME.backup-<uuid>``) and the new one into place: a
+    process killed between the two moves leaves no checkpoint at ``NAME``, only
+    the backup. That backup is the last complete checkpoint; it is moved back.
+
+    Args:
+        checkpoint_path (str): the agent checkpoint directory (``memory.checkpoint``).
+    """
+    path = os.path.abspath(checkpoint_path)
+    if os.path.exists(path):
+        return None
+    head, name = os.path.split(path)
+    backups = sorted(glob.glob(os.path.join(glob.escape(head), f".{glob.escape(name)}.backup-*")),
+                     key=os.path.getmtime)
+    for backup in reversed(backups):
+        if Checkpoint.is_checkpoint(backup):
+            os.replace(backup, path)
+            print(f"restored the agent checkpoint {path} from {backup} (a save was interrupted)")
+            return backup
+    return None
 
 
 def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dict | None:

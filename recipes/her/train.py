@@ -36,7 +36,7 @@ import tqdm
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig
 from prior_memory import check_prior_config, make_prior_mix, make_prior_terms, step_schedules
-from run_record import CpuClock, finish_run, first_reach, read_history, run_progress
+from run_record import CpuClock, finish_run, first_reach, read_history, recover_checkpoint, run_progress
 from tensordict import TensorDict, TensorDictBase
 from torchrl.checkpoint import Checkpoint
 from utils import (
@@ -101,6 +101,7 @@ def main(cfg: DictConfig) -> None:
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
     if terms.anchor is not None:  # the cloned actor's outputs, saved with the agent
         checkpoint.register("clone_anchor", terms.anchor)
+    recover_checkpoint(checkpoint_path)  # a save a kill interrupted leaves only its backup
     progress = run_progress(cfg, checkpoint_path, remembered)  # collector.resume: where the run stopped
     num_updates = progress["updates"] if progress else 0
     resumed = (cfg.memory.resume_agent or progress is not None) and Checkpoint.is_checkpoint(checkpoint_path)
