@@ -116,7 +116,7 @@ def test_background_writer_failure_names_its_cause(tmp_path, transitions):
     with pytest.raises(RuntimeError, match=r"failed: \w+Error"):
         rb.extend(transitions(1, 20))
     os.remove(target)
-    s._release()
+    s._store.release()
 
 
 def test_quick_start_as_pasted_with_only_the_import_line_changed(tmp_path, monkeypatch):

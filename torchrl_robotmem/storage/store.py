@@ -1,0 +1,262 @@
+"""``MemoryStore``: the parts of one open store, with the writer's position, for ``ZarrStorage``.
+
+``ZarrStorage`` keeps what TorchRL's storage contract needs (``_len``, ``_storage``,
+the last cursor, the mutation revision); this coordinator owns the rest: the handle,
+the RAM mirror, the tags, the schema and the commit engine, the writer's cursor and
+write count, durability (``flush``, ``close``) and closing the episodes a previous run
+left open. ``docs/storage.md`` ("Map of storage/") says which part does what.
+"""
+from __future__ import annotations
+
+import weakref
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from . import lifecycle, loader, writer_sync
+from .commit import CommitEngine
+from .format import writing_handles
+from .handle import StoreHandle
+from .mirror import RamMirror
+from .planner import WritePlan, cursor_rows
+from .registry import TagRegistry
+from .schema import with_constants
+from .store_schema import StoreSchema
+from .summary import summarize
+from .tags import TAG_KEYS
+
+__all__ = ["MemoryStore"]
+
+
+class MemoryStore:
+    """The handle and parts of one open store, and the writer position it records.
+
+    Args:
+        path, read_only, storage_options: as ``ZarrStorage`` takes them (for the :class:`StoreHandle`).
+        on_damage (str): what opening a damaged store does. commit_process (bool or None): as ``ZarrStorage``.
+    """
+
+    def __init__(self, path: Any, *, read_only: bool, storage_options: dict | None, on_damage: str,
+                 commit_process: bool | None) -> None:
+        self.handle = StoreHandle(path, read_only=read_only, storage_options=storage_options)
+        self.handle.flush = self.flush  # a newer writable handle in this process flushes this one first
+        self.read_only = self.handle.read_only
+        self.on_damage = on_damage
+        self.commit_process = commit_process
+        self.write_count = 0  # the writer's position: its count and its next row
+        self.cursor = 0
+        self.restored_writers: weakref.WeakSet | None = None  # set once the store is open
+
+    def claim(self):
+        """A writer takes the store's writer lock; returns the earlier handle of this process it took over, if any."""
+        try:
+            return self.handle.claim() if not self.read_only else None
+        except BaseException:
+            self.handle.closed = True  # never registered: the writer stays with the earlier handle
+            raise
+
+    def abandon(self, previous) -> None:
+        """An open that failed: releases the store and gives the writer back to ``previous``."""
+        self.release()
+        if previous is not None:
+            previous.take_back(self.handle)
+
+    def build(self, max_size: int, *, ndim: int, device, length: Callable[[], int], record: Callable[[], dict],
+              commit_interval: float, background: bool, codec: tuple, attrs: dict) -> None:
+        """Makes the parts for a store of ``max_size`` rows and reads the record ``attrs`` into them."""
+        handle = self.handle
+        self.mirror = RamMirror(max_size, ndim=ndim, device=device, length=length)
+        self.tags = TagRegistry(read_only=self.read_only)
+        self.engine = CommitEngine(
+            self.mirror, handle.group, record=record, commit_interval=commit_interval,
+            background=background, name=str(handle.path),
+            worker_path=str(handle.local_dir) if loader.use_worker(handle, background=background,
+                                                                    commit_process=self.commit_process) else None,
+        )
+        self.engine.handle = handle  # the worker gets a copy of its writer lock's descriptor
+        self.store_schema = StoreSchema(handle, self.mirror, self.engine.arrays, compressor=codec[0], level=codec[1])
+        self.sync_attrs(attrs)
+        self.restored_writers = weakref.WeakSet()  # this session's state
+
+    def open_arrays(self) -> None:
+        """A writer's handles on the stored arrays."""
+        self.engine.arrays.update(writing_handles(self.handle.group, self.mirror.schema or ()))
+
+    def note_stored(self, n0: int) -> None:
+        """Rows past the committed metadata may survive a crash (journal replays): never
+        hand out an id that one of the first ``n0`` stored rows already uses."""
+        if "episode" in self.mirror.schema:
+            self.tags.note_stored(self.mirror.views.get("episode")[:n0].max(), self.mirror.views.get("run")[:n0].max())
+
+    def sync_attrs(self, attrs: dict) -> None:
+        """Persistent bookkeeping, mirrored from the group attributes."""
+        self.store_schema.sync(attrs)
+        self.tags.sync(attrs)
+        self.write_count = int(attrs.get("write_count", 0))
+        self.cursor = int(attrs.get("cursor", 0))
+        self.engine.set_committed(attrs)
+
+    def env_code(self, name: str, *, create: bool = False) -> int:
+        """The integer code of an environment name (``create``: register a new one, writers only)."""
+        with self.engine.cv:
+            code, added = self.tags.code(name, create=create)
+            if added:
+                self.engine.mark_meta_dirty()
+        return code
+
+    def check_writable(self) -> None:
+        self.handle.check_writable()
+        self.engine.raise_error()
+
+    def register(self, plan: WritePlan):
+        """Applies what a valid plan changes (env names, data kind, a warning, episode ids and run); returns its rows."""
+        for name in plan.new_env_names:
+            self.env_code(name, create=True)
+        self.store_schema.note(plan)
+        if plan.draw is not None and self.tags.tag_rows(plan):
+            self.engine.mark_meta_dirty()  # this session's run was allocated
+        return plan.rows()
+
+    def advance(self, n: int, next_row: int) -> None:
+        """The writer wrote ``n`` rows; its next row is ``next_row`` (wrapping around)."""
+        self.write_count += n
+        self.cursor = next_row % self.mirror.max_dim0
+
+    def reset(self) -> None:
+        """An emptied store: the writer starts over (as TorchRL's writer restarts its count)."""
+        self.cursor = 0
+        self.write_count = 0
+        self.tags.tagger.reset()
+        self.engine.mark_meta_dirty()
+
+    def meta_snapshot(self, length: int, last: int | None) -> dict:
+        """The record a commit writes, for ``length`` rows and the last written row ``last``."""
+        return {"len": length, "cursor": self.cursor, "last_cursor": -1 if last is None else int(last),
+                "write_count": self.write_count, **self.tags.record()}
+
+    def restore_writers(self, storage: Any, force: bool = False) -> None:
+        """Puts the writers of the buffers on ``storage`` at this store's cursor and write count."""
+        writer_sync.restore_writers(storage, self.cursor, self.write_count, self.restored_writers, force=force)
+
+    def rollback_writers(self, storage: Any, cursor: Any, size: int) -> None:
+        """Undoes the cursor move the writers of ``storage`` made before a ``set`` at ``cursor`` that failed."""
+        rows = cursor_rows(cursor, size)
+        writer_sync.rollback_writers(storage, int(rows[0]) if len(rows) else 0, len(rows), size)
+
+    # -- episodes --------------------------------------------------------------------------
+
+    def mark_truncated(self, rows: torch.Tensor, own_write: Callable, bump: Callable[[], None]) -> None:
+        """Sets ``("next", "done")`` and ``("next", "truncated")`` on flat ``rows`` (RAM, then disk), then ``bump``."""
+        with lifecycle.critical(), own_write(), self.engine.cv:
+            self.engine.mark_dirty(self.mirror.mark_done(rows), self.mirror.chunk_rows)
+        bump()
+
+    def close_episode_at(self, row: int, own_write: Callable, bump: Callable[[], None]) -> None:
+        """Ends the open episode at ``row`` (see ``ZarrStorage.close_episode_at``)."""
+        with self.engine.cv:
+            self.tags.tagger.close_stream()
+        self.mark_truncated(torch.tensor([row]), own_write, bump)
+        self.engine.kick()  # (the revision bump happens inside mark_truncated)
+
+    def mark_rows_dirty(self, n0: int) -> None:
+        """Commits the first ``n0`` rows again (a write that did not say which rows it touched)."""
+        if n0:
+            with self.engine.cv:
+                self.engine.mark_dirty(slice(0, n0), self.mirror.chunk_rows)
+            self.engine.kick()
+
+    def close_open_episodes(self, length: int, full: bool, own_write: Callable, bump: Callable[[], None]) -> None:
+        """Marks the last row of every episode the previous run left open as done/truncated."""
+        rows = self.mirror.open_episode_ends(length, self.cursor, full=full)
+        if rows.numel():
+            self.mark_truncated(rows, own_write, bump)
+
+    # -- durability ------------------------------------------------------------------------
+
+    def flush(self) -> None:
+        """Blocks until every row written so far is durable and committed."""
+        if self.read_only or self.handle.closed:
+            return
+        self.engine.flush()
+
+    def close(self) -> None:
+        """Flushes, stops the writer and releases the store. Idempotent.
+
+        If the last rows cannot be written (a full disk), the handle is closed all the same and the
+        error says which rows are lost; call ``flush`` first to keep them while the cause is fixed.
+        """
+        if self.handle.closed:
+            return
+        try:
+            with lifecycle.critical():
+                self.flush()
+        except Exception:
+            engine = getattr(self, "engine", None)
+            if engine is not None:
+                engine.raise_error(closing=True)  # says which rows are lost
+            raise
+        finally:
+            self.release()
+
+    def release(self) -> None:
+        self.handle.closed = True
+        engine = getattr(self, "engine", None)
+        if engine is not None:
+            engine.close()
+        self.handle.release()
+
+    # -- reads -----------------------------------------------------------------------------
+
+    def column(self, index, n0: int | None):
+        """A column (or columns) of the first ``n0`` rows (``None``: all of them), as ``LazyTensorStorage`` gives it."""
+        rows = self.mirror.views if n0 is None else self.mirror.views[:n0]
+        if self.store_schema.constants:  # a non-tensor entry is a column too
+            rows = with_constants(rows, self.store_schema.constants)
+        return rows[index]
+
+    def summary(self, initialized: bool, n: int, max_size: int) -> dict[str, Any]:
+        """Rows, episodes, runs, success rates, env names and size on disk (see :func:`.summary.summarize`)."""
+        return summarize(self.mirror if initialized else None, n=n, path=self.handle.path, max_size=max_size,
+                         env_names=tuple(self.tags.env_names), constants=self.store_schema.constants,
+                         local_dir=self.handle.local_dir)
+
+    # -- a reader's refresh, a state dict --------------------------------------------------
+
+    def snapshot(self) -> Callable[[], None]:
+        """Saves what ``reopen`` changes; returns the function that puts it back."""
+        saved = dict(vars(self))
+        restore = loader.snapshot(self.handle, self.mirror, self.tags, self.store_schema, self.engine)
+
+        def restore_all() -> None:
+            vars(self).update(saved)
+            restore()
+
+        return restore_all
+
+    def reopen(self, max_size: int) -> dict | None:
+        """Re-reads the committed record (a reader's refresh); ``None`` while the store holds no schema."""
+        group, attrs = loader.reopen_record(self.handle, on_damage=self.on_damage)
+        if attrs.get("schema") is None:
+            return None
+        self.handle.group = self.engine.group = group
+        if int(attrs["max_size"]) != max_size:  # the writer grew the store
+            self.mirror.max_size = int(attrs["max_size"])
+        self.sync_attrs(attrs)
+        return attrs
+
+    def state(self, path: Any, ndim: int, initialized: bool) -> dict[str, Any]:
+        """This store's bookkeeping in a ``state_dict`` (its ``"zarr"`` entry)."""
+        tags = self.mirror.views.select(*TAG_KEYS, strict=False).state_dict() if initialized else {}
+        return {"store": path if isinstance(path, str) else None, "write_count": self.write_count,
+                "cursor": self.cursor, "env_names": list(self.tags.env_names), "ndim": ndim, "tags": tags,
+                **self.store_schema.state()}
+
+    def load_position(self, meta: dict, rows, n0: int, tagged: bool) -> None:
+        """The writer position of ``n0`` loaded rows (``meta``: the source's bookkeeping, if any)."""
+        self.cursor = int(meta.get("cursor", n0 % self.mirror.max_dim0)) % self.mirror.max_dim0
+        self.write_count = int(meta.get("write_count", n0))
+        if tagged:
+            self.tags.note_stored(rows.get("episode").max(), rows.get("run").max())
+        with self.engine.cv:
+            self.engine.mark_meta_dirty()
