@@ -1,6 +1,9 @@
 # Two entry points: `make demo` and `make test`. Both create .venv on a fresh
-# machine. torch is installed first, pinned, so that no CUDA wheels are pulled.
+# machine and install with the exact versions of constraints/ci-py311.txt
+# (torch 2.13.0, the CPU build on this machine's disk, so no CUDA wheels are
+# pulled). pyproject.toml itself only states ranges.
 PYTHON ?= python3
+CONSTRAINTS ?= constraints/ci-py311.txt
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
@@ -9,11 +12,11 @@ STAMP  := $(VENV)/.installed
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade pip
-	$(PY) -m pip install torch==2.13.0
-	$(PY) -m pip install -e '.[dev]' --config-settings editable_mode=compat
+	$(PY) -m pip install -c $(CONSTRAINTS) torch
+	$(PY) -m pip install -c $(CONSTRAINTS) -e '.[dev]' --config-settings editable_mode=compat
 	touch $(STAMP)
 
 # SAC+HER on FetchReach with a short budget, over a persistent memory. Run it

@@ -19,7 +19,7 @@ taken between medians of the same run.
   ``DummyVecEnv`` of ``gymnasium.make("FetchPush-v4")``) filled through its
   ``add`` with the same transitions, and ``HERReplayBuffer`` over
   ``ZarrStorage`` / ``LazyTensorStorage``. SB3 is optional
-  (``pip install 'torchrl_robotmem[bench]'``); without it that table is skipped.
+  (``pip install 'torchrl_robotmem[sb3]'``); without it that table is skipped.
 
 Prints markdown tables and writes ``bench_results/sampler.json``.
 
@@ -190,7 +190,7 @@ def bench_sb3(storages: dict, rows: int, queries, bs, repeat, reward_fn) -> dict
     try:
         import stable_baselines3
     except ImportError:
-        print("\nStable-Baselines3 comparison: skipped (pip install 'torchrl_robotmem[bench]')")
+        print("\nStable-Baselines3 comparison: skipped (pip install 'torchrl_robotmem[sb3]')")
         return {"skipped": "stable-baselines3 not installed"}
     sb3, fill_s = sb3_her_buffer(storages["ZarrStorage"], rows)
     q1 = queries[0]
