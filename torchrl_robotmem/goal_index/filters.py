@@ -23,6 +23,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from torchrl_robotmem.storage.context import env_advice
+
 __all__ = ["FILTER_KEYWORDS", "FilterKey", "RowFilter"]
 
 #: The keywords every reader accepts in place of ``filter=RowFilter(...)``.
@@ -177,7 +179,7 @@ class RowFilter:
                             "env_names= to GoalIndex (or use a storage with env_names)."
                         )
                     if item not in env_names:
-                        raise ValueError(f"unknown env {item!r}; known envs: {list(env_names)}.")
+                        raise ValueError(_unknown_env(item, env_names))
                     codes.add(list(env_names).index(item))
                 else:
                     codes.add(item)
@@ -212,6 +214,14 @@ class FilterKey(NamedTuple):
         if self.runs is not None:
             mask &= np.isin(column("run"), self.runs)
         return mask
+
+
+def _unknown_env(name: str, env_names: Sequence[str]) -> str:
+    """The error of an env filter naming an env the storage does not know (with the fix when it knows none)."""
+    if env_names:
+        return f"unknown env {name!r}; known envs: {list(env_names)}."
+    return (f"cannot filter on env {name!r}: no row of this storage carries an env name (known envs: []; rows "
+            f"written without one have env code -1). {env_advice()}")
 
 
 def _check_bool(value, name: str) -> bool:

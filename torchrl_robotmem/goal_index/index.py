@@ -32,6 +32,7 @@ from torchrl_robotmem.goal_index.queries import check_k, parse_goals
 from torchrl_robotmem.goal_index.shared import SharedIndexes
 from torchrl_robotmem.goal_index.tracking import ColumnTracker, as_tensor_storage, stored_rows
 from torchrl_robotmem.goal_index.views import FilterView
+from torchrl_robotmem.storage.context import success_advice
 
 __all__ = ["GoalIndex", "recall"]
 
@@ -396,7 +397,7 @@ class GoalIndex:
             return view
         tracker = self._tracker
         if key.success_only:
-            tracker.track(self.success_key, "success_only")
+            tracker.track(self.success_key, "success_only", success_advice() if self.success_key == SUCCESS_KEY else "")
         if key.envs is not None:
             tracker.track(self.env_key, "the env filter")
         if key.runs is not None:

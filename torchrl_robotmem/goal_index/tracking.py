@@ -83,6 +83,13 @@ def _key_str(key: NestedKey) -> str:
     return repr(key) if isinstance(key, tuple) else repr(str(key))
 
 
+def _missing(key: NestedKey, what: str, advice: str, err: KeyError) -> KeyError:
+    """The error of a filter whose column the storage does not hold: the column, the fix, the stored keys."""
+    fix = f" The rows were written without it. {advice}" if advice else ""
+    return KeyError(f"{what} needs the column {_key_str(key)}, which this storage does not hold.{fix} "
+                    f"({err.args[0]})")
+
+
 def _bits(a: np.ndarray) -> np.ndarray:
     """Flat integer view of a contiguous array, for bitwise comparison (NaN == NaN)."""
     flat = a.reshape(-1)
@@ -167,6 +174,7 @@ class ColumnTracker:
         self.tail_size = tail_size
         self.rebuild_fraction = rebuild_fraction
         self._tracked: dict[NestedKey, str] = {}  # filter columns: key -> what needs it
+        self._advice: dict[NestedKey, str] = {}  # filter columns: key -> how to record it (for errors)
         self.revision = 0
         self._reset()
 
@@ -215,21 +223,26 @@ class ColumnTracker:
             return np.zeros(0, dtype=np.int64)
         return logged[0] if len(logged) == 1 else np.unique(np.concatenate(logged))
 
-    def track(self, key: NestedKey, what: str) -> None:
-        """Snapshots one more column (one value per row), named ``what`` in errors; kept from then on."""
+    def track(self, key: NestedKey, what: str, advice: str = "") -> None:
+        """Snapshots one more column (one value per row), named ``what`` in errors; kept from then on.
+
+        ``advice``: how to get the column, added to the error when the storage has no such column.
+        """
         if key in self._snap or self.goal_shape is None:
             self._tracked.setdefault(key, what)
+            self._advice[key] = advice
             return
         try:
             col = _numpy(read_column(self.storage, key, self.n))
         except KeyError as err:
-            raise KeyError(f"{what} needs the column {_key_str(key)}: {err.args[0]}") from None
+            raise _missing(key, what, advice, err) from None
         if int(np.prod(col.shape[1:], dtype=np.int64)) != 1:
             raise ValueError(
                 f"{what} needs one value per row in {_key_str(key)}, got shape {tuple(col.shape)}."
             )
         self._snap[key] = _grow(None, col, self.n)
         self._tracked[key] = what
+        self._advice[key] = advice
 
     def sync(self, check_goal_dim=None) -> None:
         """Brings the snapshots up to date with the storage (free when its revision did not move).
@@ -253,7 +266,7 @@ class ColumnTracker:
             try:
                 cols[key] = _numpy(read_column(st, key, n))
             except KeyError as err:
-                raise KeyError(f"{what} needs the column {_key_str(key)}: {err.args[0]}") from None
+                raise _missing(key, what, self._advice.get(key, ""), err) from None
         goals = cols[self.goal_key]
         if goals.ndim < 2 or goals.dtype.kind not in "fiu":
             raise ValueError(
@@ -313,4 +326,5 @@ class ColumnTracker:
 
     def __setstate__(self, state):
         self.__dict__.update(state)
+        self.__dict__.setdefault("_advice", {})
         self._reset()

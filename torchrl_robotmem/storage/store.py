@@ -8,6 +8,7 @@ left open. ``docs/storage.md`` ("Map of storage/") says which part does what.
 """
 from __future__ import annotations
 
+import warnings
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -16,6 +17,7 @@ import torch
 
 from . import lifecycle, loader, writer_sync
 from .commit import CommitEngine
+from .context import missing_context, user_stacklevel
 from .format import writing_handles
 from .handle import StoreHandle
 from .mirror import RamMirror
@@ -47,6 +49,7 @@ class MemoryStore:
         self.write_count = 0  # the writer's position: its count and its next row
         self.cursor = 0
         self.restored_writers: weakref.WeakSet | None = None  # set once the store is open
+        self.context_checked = False  # a success column and an env name: checked at this handle's first write
 
     def claim(self):
         """A writer takes the store's writer lock; returns the earlier handle of this process it took over, if any."""
@@ -110,10 +113,19 @@ class MemoryStore:
         self.engine.raise_error()
 
     def register(self, plan: WritePlan):
-        """Applies what a valid plan changes (env names, data kind, a warning, episode ids and run); returns its rows."""
+        """Applies what a valid plan changes (env names, data kind, warnings, episode ids and run); returns its rows.
+
+        The first TensorDict write of this handle without a success column or an env name
+        warns once, naming the fix (:func:`.context.missing_context`).
+        """
         for name in plan.new_env_names:
             self.env_code(name, create=True)
         self.store_schema.note(plan)
+        if not self.context_checked and plan.env is not None:
+            self.context_checked = True
+            advice = missing_context(plan.data, plan.env, self.handle.path)
+            if advice is not None:
+                warnings.warn(advice, UserWarning, stacklevel=user_stacklevel())
         if plan.draw is not None and self.tags.tag_rows(plan):
             self.engine.mark_meta_dirty()  # this session's run was allocated
         return plan.rows()

@@ -14,7 +14,7 @@ from tensordict import TensorDictBase
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
-from . import lifecycle, loader
+from . import compat, lifecycle, loader
 from .checkpointer import ZarrCheckpointer
 from .planner import check_rows, completes_chunk, cursor_rows, last_index, plan_write, write_span
 from .schema import DataKind
@@ -50,6 +50,8 @@ class ZarrStorage(LazyTensorStorage):
         device (str, optional): device of the RAM mirror. Defaults to ``"cpu"``.
         compilable (bool, optional): as in TorchRL (plain-int ``len``). Defaults to ``False``.
         shared_init (bool, optional): refused (``True``): a store has one writer process.
+        scratch_dir, existsok, auto_cleanup, consolidated, cleanup_memmap: ``LazyMemmapStorage`` /
+            ``LazyTensorStorage``'s, for a one-line swap; ``scratch_dir`` is ignored with a warning (:mod:`.compat`).
         sample_tags (bool, optional): include the tags in what ``get`` returns. Defaults to ``False``.
         on_damage (str, optional): ``"raise"`` (default) or ``"warn"`` (``read_only`` only) on a damaged store.
 
@@ -63,7 +65,6 @@ class ZarrStorage(LazyTensorStorage):
         >>> data = TensorDict({"obs": torch.randn(10, 3), ("next", "done"): torch.zeros(10, 1, dtype=torch.bool)}, [10])
         >>> _ = rb.extend(data)
         >>> rb.storage.close()
-        >>> # ... days later, in another process
         >>> rb = TensorDictReplayBuffer(storage=ZarrStorage(path), batch_size=4)
         >>> _ = rb.extend(data)  # appends after the 10 old rows
         >>> rb.storage["run"][-1].item(), len(rb)
@@ -78,7 +79,9 @@ class ZarrStorage(LazyTensorStorage):
                  compression_level: int = 1, commit_interval: float = 1.0, background: bool = True,
                  commit_process: bool | None = None, storage_options: dict | None = None, device: str = "cpu",
                  compilable: bool = False, shared_init: bool = False, sample_tags: bool = False,
-                 on_damage: str = "raise") -> None:
+                 on_damage: str = "raise", scratch_dir: str | os.PathLike | None = None, existsok: bool = False,
+                 auto_cleanup: bool | None = None, consolidated: bool = False, cleanup_memmap: bool = True) -> None:
+        compat.check_replaced_arguments(path, scratch_dir, existsok, auto_cleanup, consolidated, cleanup_memmap)
         loader.check_arguments(path, max_size, chunk_rows=chunk_rows, commit_interval=commit_interval, ndim=ndim,
                                shared_init=shared_init, compressor=compressor, compression_level=compression_level,
                                on_damage=on_damage, read_only=read_only)
