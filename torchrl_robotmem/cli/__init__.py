@@ -44,6 +44,7 @@ COMMANDS: dict[str, str] = {
     "export": "torchrl_robotmem.cli.transfer",
     "import": "torchrl_robotmem.cli.transfer",
     "verify": "torchrl_robotmem.cli.verify", "repair": "torchrl_robotmem.cli.verify",
+    "copy": "torchrl_robotmem.cli.copy_memory",
 }
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from . import CLIError
 from ._build import atomic_target, check_target, new_store, progress
 from ._memory import DONE_KEY, SUCCESS_KEY, TAGS, column, has_key, open_memory, root_attrs, write_order
+from .transitions import cast_float64
 
 __all__ = ["export_minari", "import_minari", "open_minari"]
 
@@ -279,7 +280,8 @@ def _check_minari_complete(ds, data_dir: str) -> None:
         )
 
 
-def import_minari(src: str, path: str, *, max_size: int | None = None, env: str | None = None) -> int:
+def import_minari(src: str, path: str, *, max_size: int | None = None, env: str | None = None,
+                  keep_float64: bool = False, notes: list[str] | None = None) -> int:
     """Creates the memory ``path`` from a local Minari dataset, episode by episode; returns its rows.
 
     Each episode of ``T`` steps becomes ``T`` transitions: the observation keys
@@ -303,6 +305,8 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
     Keyword Args:
         max_size (int, optional): capacity; defaults to the dataset's step count.
         env (str, optional): the env name to tag every row with.
+        keep_float64 (bool): keep float64 fields (default: stored as float32, as the recipes' envs write them).
+        notes (list, optional): what was cast is appended here (one line).
     """
     from torchrl.data import ReplayBuffer
 
@@ -320,6 +324,7 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
     episodes = ds.iterate_episodes()
     where = os.path.join(data_dir, "main_data.hdf5") if os.path.isfile(os.path.join(data_dir, "main_data.hdf5")) \
         else data_dir
+    cast: set[str] = set()
     with new_store(path, capacity, background=True) as storage:
         rb = ReplayBuffer(storage=storage, batch_size=1)
         for i in progress(range(ds.total_episodes), desc="import", unit="episode"):
@@ -335,11 +340,17 @@ def import_minari(src: str, path: str, *, max_size: int | None = None, env: str 
                 td = _transitions(ep, schema)
                 if td is None:
                     continue
+                leaves = dict(td.items(True, True))
+                for key in cast_float64(leaves, keep_float64=keep_float64):
+                    td.set(key, leaves[key])
+                    cast.add(_path(key))
                 storage.env = _episode_env(i, env, meta, spec_env)
                 rb.extend(td)
             except (ValueError, TypeError, KeyError, IndexError, RuntimeError) as err:
                 raise CLIError(f"{src!r}: episode {i} cannot be imported ({type(err).__name__}: {err})") from None
         rows = len(storage)
+    if cast and notes is not None:
+        notes.append(f"float64 stored as float32 (--keep-float64 keeps it): {', '.join(sorted(cast))}")
     return rows
 
 

@@ -22,8 +22,10 @@ import numpy as np
 from . import CLIError
 from ._build import atomic_target, check_target, new_store, progress
 from ._memory import TAGS, column, open_memory, root_attrs, write_order
+from .plain_npz import import_plain_npz
+from .transitions import cast_float64
 
-__all__ = ["META_KEY", "NPZ_FORMAT", "NPZ_VERSION", "export_npz", "import_npz", "open_npz"]
+__all__ = ["META_KEY", "NPZ_FORMAT", "NPZ_VERSION", "export_npz", "import_npz", "load_npz", "open_npz"]
 
 META_KEY = "__robotmem__"
 NPZ_FORMAT = "torchrl_robotmem.npz"
@@ -87,8 +89,12 @@ def export_npz(path: Any, out: str) -> dict[str, Any]:
     return meta
 
 
-def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | None = None) -> int:
-    """Creates the memory ``path`` from an ``.npz`` written by :func:`export_npz`; returns its rows.
+def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | None = None,
+               keep_float64: bool = False, notes: list[str] | None = None) -> int:
+    """Creates the memory ``path`` from an ``.npz`` written by :func:`export_npz`, or a plain one; returns its rows.
+
+    A file without the ``__robotmem__`` record is a plain npz of transitions
+    (any tool's): see :mod:`.plain_npz` for its arrays.
 
     Args:
         src (str): the ``.npz`` file (loaded with ``allow_pickle=False``).
@@ -97,6 +103,8 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
     Keyword Args:
         max_size (int, optional): capacity; defaults to the exported memory's.
         env (str, optional): tag every row with this env instead of the exported env tags.
+        keep_float64 (bool): keep float64 arrays (default: stored as float32).
+        notes (list, optional): what was cast (or, for a plain npz, ignored or recomputed) is appended here.
 
     Example:
         >>> import tempfile, numpy as np, torch
@@ -114,7 +122,15 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
         [0.0, 1.0, 2.0, 3.0]
     """
     check_target(path)
+    if not os.path.isfile(src):
+        raise CLIError(f"{src!r} is not a file")
+    data = load_npz(src)
+    if META_KEY not in data.files:
+        return import_plain_npz(data, src, path, max_size=max_size, env=env, keep_float64=keep_float64, notes=notes)
     arrays, meta = _read_export(src)
+    cast = cast_float64(arrays, keep_float64=keep_float64)
+    if cast and notes is not None:
+        notes.append(f"float64 stored as float32 (--keep-float64 keeps it): {', '.join(sorted(cast))}")
     rows = int(meta.get("rows", 0))
     ndim = int(meta.get("ndim", 1))
     capacity = int(max_size or meta.get("max_size") or rows)
@@ -203,13 +219,7 @@ def open_npz(src: str):
         ...     print(str(err).split("(")[1])
         no '__robotmem__' array)
     """
-    try:
-        data = np.load(src, allow_pickle=False)
-    except _NPZ_READ_ERRORS as err:
-        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (it cannot be read as npz: "
-                       f"{type(err).__name__}: {err}; a truncated file?)") from None
-    if not hasattr(data, "files"):
-        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (one .npy array, not an npz)")
+    data = load_npz(src)
     try:
         meta = json.loads(str(_read_npz_array(data, src, META_KEY)))
     except CLIError:
@@ -221,6 +231,30 @@ def open_npz(src: str):
     if not isinstance(meta, dict):
         raise CLIError(f"{src!r}: its {META_KEY!r} array is not a JSON object")
     return data, meta
+
+
+def load_npz(src: str):
+    """``np.load(src, allow_pickle=False)`` as an ``NpzFile``, or a :class:`CLIError` naming the file.
+
+    Args:
+        src (str): the ``.npz`` file.
+
+    Example:
+        >>> import os, tempfile, numpy as np
+        >>> from torchrl_robotmem.cli.npz_io import load_npz
+        >>> f = os.path.join(tempfile.mkdtemp(), "x.npz")
+        >>> np.savez(f, a=np.zeros(3))
+        >>> load_npz(f).files
+        ['a']
+    """
+    try:
+        data = np.load(src, allow_pickle=False)
+    except _NPZ_READ_ERRORS as err:
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (it cannot be read as npz: "
+                       f"{type(err).__name__}: {err}; a truncated file?)") from None
+    if not hasattr(data, "files"):
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (one .npy array, not an npz)")
+    return data
 
 
 def _read_npz_array(data, src: str, key: str) -> np.ndarray:

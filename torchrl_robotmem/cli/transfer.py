@@ -21,6 +21,14 @@ command line only; each format has its own module:
   URL (``s3://...``, ``memory://...``) cannot be renamed into place and is
   written directly.
 
+``import`` also reads other tools' data (:mod:`.plain_npz`: a plain ``.npz``
+of transitions without the ``__robotmem__`` record; :mod:`.sb3_io`: a
+Stable-Baselines3 replay buffer, ``--format sb3``, only with
+``--trust-pickle`` since loading it unpickles it). float64 data is stored as
+float32 unless ``--keep-float64``; what was cast, ignored or recomputed is
+printed. A ``SRC`` that is itself a memory is refused with the command that
+copies it (``robotmem copy``, :mod:`.copy_memory`).
+
 A source that is cut off or damaged (a truncated ``.npz`` or HDF5 file, a
 ``metadata.json`` that disagrees with the episodes present) is one error line
 naming the file, and nothing is created.
@@ -28,16 +36,19 @@ naming the file, and nothing is created.
 from __future__ import annotations
 
 import argparse
+import os
 
 from . import CLIError
 from .minari_io import export_minari, import_minari
 from .npz_io import export_npz, import_npz
+from .sb3_io import import_sb3
 
-__all__ = ["export_npz", "import_npz", "export_minari", "import_minari", "add_arguments", "run"]
+__all__ = ["export_npz", "import_npz", "export_minari", "import_minari", "import_sb3", "add_arguments", "run"]
 
 HELP = {
     "export": "Export a memory to .npz or a Minari dataset directory.",
-    "import": "Import a .npz file or a local Minari dataset into a new memory.",
+    "import": "Import an .npz (robotmem's export or a plain one), a local Minari dataset or an SB3 replay buffer "
+              "(--format sb3 --trust-pickle) into a new memory.",
 }
 
 
@@ -47,7 +58,29 @@ HELP = {
 def _format(name: str, given: str | None) -> str:
     if given:
         return given
+    if name.endswith(".pkl"):
+        return "sb3"
     return "npz" if name.endswith(".npz") else "minari"
+
+
+def _refuse_memory_source(src: str) -> None:
+    """A ``SRC`` that is a memory is copied, not imported: say which command does it."""
+    from torchrl_robotmem.storage import is_url, normalize_path, store_exists
+
+    name = normalize_path(src)
+    local_store = not is_url(name) and (name.endswith(".zip") or os.path.isfile(os.path.join(name, "zarr.json")))
+    if (local_store or is_url(name)) and store_exists(src):
+        raise CLIError(f"{src!r} is a torchrl_robotmem memory; to copy it use: robotmem copy {src} DST")
+
+
+def _episodes(path: str) -> int:
+    from torchrl_robotmem.storage import ZarrStorage
+
+    storage = ZarrStorage(path, read_only=True)
+    try:
+        return int(storage["episode"].unique().numel()) if len(storage) else 0
+    finally:
+        storage.close()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,12 +91,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--obs-keys", default=None,
                             help="Minari: comma-separated observation keys (default: keys stored at the root and under next)")
     else:
-        parser.add_argument("src", help="SRC.npz, a Minari dataset directory, or a local Minari dataset id")
+        parser.add_argument("src", help="SRC.npz (robotmem's export or a plain npz of transitions), a Minari "
+                                        "dataset directory or local dataset id, or an SB3 replay buffer .pkl")
         parser.add_argument("path", help="the memory to create (must not exist)")
         parser.add_argument("--max-size", type=int, default=None, help="capacity (default: what is imported)")
-        parser.add_argument("--env", default=None, help="tag every imported row with this env name")
-    parser.add_argument("--format", choices=("npz", "minari"), default=None,
-                        help="default: npz for *.npz names, else minari")
+        parser.add_argument("--env", default=None,
+                            help="tag every imported row with this env name; for data without is_success (SB3, "
+                                 "plain npz), the Gymnasium-Robotics id whose compute_reward recomputes it")
+        parser.add_argument("--keep-float64", action="store_true",
+                            help="keep float64 data as float64 (default: stored as float32, as the envs write it)")
+        parser.add_argument("--trust-pickle", action="store_true",
+                            help="sb3: load the pickled buffer. Unpickling executes code from the file: only for "
+                                 "files you made yourself")
+    parser.add_argument("--format", choices=("npz", "minari") if command == "export" else ("npz", "minari", "sb3"),
+                        default=None, help="default: npz for *.npz names, sb3 for *.pkl (import), else minari")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,8 +121,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.max_size is not None and args.max_size <= 0:
         raise CLIError(f"--max-size must be a positive integer, got {args.max_size}")
+    _refuse_memory_source(args.src)
     fmt = _format(args.src, args.format)
-    importer = import_npz if fmt == "npz" else import_minari
-    rows = importer(args.src, args.path, max_size=args.max_size, env=args.env)
-    print(f"imported {rows:,} rows into {args.path}")
+    notes: list[str] = []
+    kwargs = {"max_size": args.max_size, "env": args.env, "keep_float64": args.keep_float64, "notes": notes}
+    if fmt == "sb3":
+        rows = import_sb3(args.src, args.path, trust_pickle=args.trust_pickle, **kwargs)
+    else:
+        rows = (import_npz if fmt == "npz" else import_minari)(args.src, args.path, **kwargs)
+    for note in notes:
+        print(note)
+    print(f"imported {rows:,} rows ({_episodes(args.path):,} episodes) into {args.path}")
     return 0
