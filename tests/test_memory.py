@@ -43,7 +43,7 @@ def test_save_perception_and_exact_recall(tmp_path):
         assert len(mem) == 120
         goals = torch.tensor(np.stack([g for g, _, _ in log]), dtype=torch.float32)
         query = goals[57] + 0.01
-        out = mem.recall(query.numpy(), top_k=5)
+        out = mem.recall(query.numpy(), top_k=5, one_per_episode=False)  # rows, whatever their episode
         dist = (goals - query).norm(dim=-1)
         # the object rarely moves under a random policy: many ties, so compare distances
         assert torch.allclose(out["distance"], dist.sort().values[:5], atol=1e-6)
@@ -68,15 +68,18 @@ def test_recall_filters_batch_and_robotmem_style_arguments(tmp_path):
                  "is_success": t % 10 == 0, "env": "FetchPush-v4" if t < 20 else "FetchSlide-v4"},
             )
         q = np.array([0.155, 0, 0])
-        assert mem.recall(q, top_k=2)["index"].tolist() == [15, 16]
-        succ = mem.recall(q, top_k=5, success_only=True)
+        # 30 rows of one episode: row-level recall (one_per_episode=False) ranks rows; the default, episodes
+        assert mem.recall(q, top_k=2, one_per_episode=False)["index"].tolist() == [15, 16]
+        assert mem.recall(q, top_k=2)["index"].tolist() == [15, -1]
+        succ = mem.recall(q, top_k=5, success_only=True, one_per_episode=False)
         assert succ["index"][:3].tolist() == [20, 10, 0] and succ["mask"].tolist() == [True] * 3 + [False] * 2
         assert (succ["next", "is_success"][:3] == 1).all()
-        same = mem.recall(None, top_k=5, context_filter={"task.success": True}, spatial_sort={"field": "spatial.target", "target": q})
+        same = mem.recall(None, top_k=5, context_filter={"task.success": True}, one_per_episode=False,
+                          spatial_sort={"field": "spatial.target", "target": q})
         assert torch.equal(same["index"], succ["index"])
-        slide = mem.recall(q, top_k=3, env="FetchSlide-v4")
+        slide = mem.recall(q, top_k=3, env="FetchSlide-v4", one_per_episode=False)
         assert slide["index"].tolist() == [20, 21, 22]
-        batch = mem.recall(np.stack([q, q * 0]), top_k=2)
+        batch = mem.recall(np.stack([q, q * 0]), top_k=2, one_per_episode=False)
         assert batch.shape == (2, 2) and batch["index"][1].tolist() == [0, 1]
         with pytest.raises(ValueError, match="FetchReach-v4"):
             mem.recall(q, env="FetchReach-v4")
@@ -220,10 +223,73 @@ def test_recall_top_k_far_above_the_rows(tmp_path):
         for t in range(3):
             mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {"achieved_goal": [0.1 * t, 0, 0],
                                                                   "desired_goal": [1, 0, 0], "is_success": t == 2})
-        out = mem.recall([0.0, 0.0, 0.0], top_k=10**12)
+        out = mem.recall([0.0, 0.0, 0.0], top_k=10**12, one_per_episode=False)
         assert out.batch_size == (100,) and out["index"][:4].tolist() == [0, 1, 2, -1]
         assert out["mask"].sum() == 3 and out["mask"][:3].all()
         succ = mem.recall([0.0, 0.0, 0.0], top_k=10**12, success_only=True)
         assert succ["mask"].sum() == 1 and succ["index"][:2].tolist() == [2, -1]
         assert mem.recall(np.zeros((2, 3)), top_k=10**12).batch_size == (2, 100)
         assert mem.recall(np.zeros(3), top_k=5).batch_size == (5,)  # below the capacity: top_k slots, as always
+
+
+def _episode_reference(mem, goal, k, keep=None, max_distance=None):
+    """Brute force: the k episodes whose nearest (kept) row is closest to ``goal``, as (distance, episode) pairs."""
+    s, n = mem.storage, len(mem)
+    d = (s["next", "achieved_goal"][:n].double() - torch.as_tensor(goal, dtype=torch.float64)).norm(dim=-1)
+    best = {}
+    for e, dist, ok in zip(s["episode"][:n].tolist(), d.tolist(), (keep if keep is not None else [True] * n)):
+        if ok and (max_distance is None or dist <= max_distance) and dist < best.get(e, float("inf")):
+            best[e] = dist
+    return sorted(best.items(), key=lambda item: item[1])[:k]
+
+
+def _assert_episodes(out, ref):
+    mask = out["mask"]
+    assert int(mask.sum()) == len(ref)
+    episodes = out["episode"][mask].tolist()
+    assert len(set(episodes)) == len(episodes), "two results from one episode"
+    assert np.allclose(out["distance"][mask].numpy(), [d for _, d in ref], atol=1e-6)
+    # the same episodes, except where two episodes tie to float precision
+    for got, (e, dist) in zip(episodes, ref):
+        assert got == e or any(abs(d2 - dist) < 1e-6 for e2, d2 in ref if e2 == got)
+
+
+def test_seed_quick_start_recall_returns_distinct_episodes(tmp_path):
+    """The seed's `prior = mem.recall(obs["desired_goal"], top_k=5)`: five past episodes, not five steps of one."""
+    with RobotMemory(tmp_path / "m.zarr", max_size=1000) as mem:
+        _play(mem, steps=300)  # six 50-step FetchPickAndPlace episodes, saved as the quick start saves them
+        env = gym.make("FetchPickAndPlace-v4")
+        obs, _ = env.reset(seed=7)
+        env.close()
+        prior = mem.recall(obs["desired_goal"], top_k=5)
+        assert prior["mask"].all() and prior["episode"].unique().numel() == 5
+        assert (prior["distance"][1:] >= prior["distance"][:-1]).all()
+        _assert_episodes(prior, _episode_reference(mem, obs["desired_goal"], 5))
+        # the row-level answer is one argument away: the 5 nearest steps (a random policy rarely moves the
+        # object, so they tie and come from fewer episodes than 5)
+        rows = mem.recall(obs["desired_goal"], top_k=5, one_per_episode=False)
+        d = (mem.storage["next", "achieved_goal"][:300] - torch.as_tensor(obs["desired_goal"]).float()).norm(dim=-1)
+        assert torch.allclose(rows["distance"], d.sort().values[:5], atol=1e-6)
+
+
+def test_recall_episodes_exact_with_filters(tmp_path):
+    """Distinct-episode recall is exact (the k nearest episodes by their nearest row) under every filter."""
+    rng = np.random.default_rng(0)
+    with RobotMemory(tmp_path / "m.zarr", max_size=1000) as mem:
+        envs = ["FetchPush-v4", "FetchSlide-v4"]
+        for episode in range(24):
+            for t in range(10):
+                mem.save_perception(np.zeros(25), np.zeros(4), -1.0, {
+                    "achieved_goal": rng.uniform(0, 1, 3), "desired_goal": [episode, 0, 0],
+                    "is_success": rng.uniform() < 0.3, "env": envs[episode % 2], "truncated": t == 9})
+        s, n = mem.storage, len(mem)
+        success = (s["next", "is_success"][:n] > 0.5).tolist()
+        slide = (s["env"][:n] == s.env_code("FetchSlide-v4")).tolist()
+        for goal in rng.uniform(0, 1, (4, 3)):
+            _assert_episodes(mem.recall(goal, top_k=6), _episode_reference(mem, goal, 6))
+            _assert_episodes(mem.recall(goal, top_k=6, success_only=True),
+                             _episode_reference(mem, goal, 6, keep=success))
+            _assert_episodes(mem.recall(goal, top_k=5, env="FetchSlide-v4"), _episode_reference(mem, goal, 5, keep=slide))
+            both = [a and b for a, b in zip(success, slide)]
+            _assert_episodes(mem.recall(goal, top_k=30, success_only=True, env="FetchSlide-v4", max_distance=0.4),
+                             _episode_reference(mem, goal, 30, keep=both, max_distance=0.4))

@@ -10,6 +10,7 @@ buffer (``RobotMemory.buffer``) or opened with ``ZarrStorage(path)``.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping
 from typing import Any
@@ -65,16 +66,19 @@ class RobotMemory:
         >>> import numpy as np
         >>> from torchrl_robotmem import RobotMemory
         >>> mem = RobotMemory("memory://robotmemory-doc", max_size=100)
-        >>> for t in range(3):
-        ...     _ = mem.save_perception(
-        ...         observation=np.zeros(25), action=np.zeros(4), reward=-1.0,
-        ...         metadata={"achieved_goal": [0.1 * t, 0.0, 0.0], "desired_goal": [1.0, 0.0, 0.0],
-        ...                   "is_success": t == 2, "env": "FetchPickAndPlace-v4"})
-        >>> prior = mem.recall([0.2, 0.0, 0.0], top_k=2)
-        >>> prior["next", "achieved_goal"][:, 0].tolist(), prior["mask"].tolist()
-        ([0.20000000298023224, 0.10000000149011612], [True, True])
-        >>> mem.recall([0.0, 0.0, 0.0], top_k=2, success_only=True)["mask"].tolist()
-        [True, False]
+        >>> for episode in range(3):
+        ...     for t in range(3):
+        ...         _ = mem.save_perception(
+        ...             observation=np.zeros(25), action=np.zeros(4), reward=-1.0,
+        ...             metadata={"achieved_goal": [episode + 0.1 * t, 0.0, 0.0], "desired_goal": [1.0, 0.0, 0.0],
+        ...                       "is_success": t == 2, "env": "FetchPickAndPlace-v4", "truncated": t == 2})
+        >>> prior = mem.recall([0.2, 0.0, 0.0], top_k=2)  # the nearest transition of the 2 nearest episodes
+        >>> prior["episode"].tolist(), prior["index"].tolist(), prior["mask"].tolist()
+        ([0, 1], [2, 3], [True, True])
+        >>> mem.recall([0.2, 0.0, 0.0], top_k=2, one_per_episode=False)["index"].tolist()  # rows: one episode
+        [2, 1]
+        >>> mem.recall([2.0, 0.0, 0.0], top_k=2, success_only=True)["episode"].tolist()
+        [2, 1]
         >>> mem.close()
     """
 
@@ -236,9 +240,17 @@ class RobotMemory:
         filter: RowFilter | Mapping[str, Any] | None = None,
         context_filter: Mapping[str, Any] | None = None,
         spatial_sort: Mapping[str, Any] | None = None,
+        one_per_episode: bool = True,
         **filter_keywords: Any,
     ) -> TensorDictBase:
-        """The ``top_k`` stored transitions whose achieved goals are nearest ``desired_goal``.
+        """Past episodes where goals near ``desired_goal`` were achieved: the nearest transition of each.
+
+        By default the ``top_k`` results come from ``top_k`` different episodes: the
+        ``top_k`` episodes whose nearest achieved goal is closest, exactly (the
+        nearest transition of each, nearest first), as the seed promised ("past
+        episodes where similar goals were achieved"). ``one_per_episode=False``
+        returns the ``top_k`` nearest transitions instead, which may all come from
+        one episode (consecutive steps of a Fetch episode often share a goal).
 
         Args:
             desired_goal: one goal ``[goal_dim]`` or a batch ``[B, goal_dim]``.
@@ -247,12 +259,13 @@ class RobotMemory:
         Keyword Args:
             filter (RowFilter or mapping, optional): which transitions may be
                 returned (:class:`~torchrl_robotmem.goal_index.RowFilter`).
+            one_per_episode (bool): one result per episode (default ``True``), or
+                the nearest transitions whatever their episode (``False``). A
+                ``filter=RowFilter(one_per_episode=True)`` asks for episodes too.
             **filter_keywords: the same as keywords instead:
                 ``success_only=True`` (only transitions with ``is_success``),
                 ``env`` (only these environments), ``run``, ``max_distance``
-                (only transitions at most this far), ``one_per_episode=True``
-                (the ``top_k`` results come from ``top_k`` different episodes,
-                the nearest transition of each).
+                (only transitions at most this far).
             context_filter (dict): robotmem-style filters, e.g.
                 ``{"task.success": True, "env": "FetchPush-v4"}``.
             spatial_sort (dict): robotmem-style ``{"field": ..., "target": goal}``; the
@@ -277,7 +290,10 @@ class RobotMemory:
             if "target" not in spatial_sort:
                 raise KeyError("spatial_sort needs a 'target' goal, e.g. {'target': desired_goal}.")
             desired_goal = spatial_sort["target"]
-        return self.index.recall(desired_goal, top_k, filter=filter, **filter_keywords)
+        flt = RowFilter.coerce(filter, **filter_keywords)
+        if one_per_episode and not flt.one_per_episode:
+            flt = dataclasses.replace(flt, one_per_episode=True)
+        return self.index.recall(desired_goal, top_k, filter=flt)
 
     def __len__(self) -> int:
         return len(self.storage)

@@ -40,7 +40,8 @@ _SUCCESS_FIX = (
     "(from torchrl.envs import default_info_dict_reader)"
 )
 _ENV_FIX = (
-    "name the env of the rows with ZarrStorage(path, ..., env='FetchReach-v4') (or storage.env = 'FetchReach-v4' "
+    "name the env of the rows with ZarrStorage(path, ..., env='FetchReach-v4') (RobotMemory(path, env=...); or "
+    "storage.env = 'FetchReach-v4' "
     "before writing)"
 )
 
