@@ -9,12 +9,13 @@ import contextlib
 import glob
 import json
 import os
+import resource
 import time
 
 from omegaconf import DictConfig
 from torchrl.checkpoint import Checkpoint
 
-__all__ = ["CpuClock", "append_history", "finish_run", "first_reach", "plot_success", "read_history",
+__all__ = ["CpuClock", "append_history", "cost_line", "finish_run", "first_reach", "plot_success", "read_history",
            "recover_checkpoint", "run_progress"]
 
 
@@ -83,11 +84,36 @@ def run_progress(cfg: DictConfig, checkpoint_path: str, memory_rows: int) -> dic
 
 
 class CpuClock:
-    """Process CPU seconds, with ``paused()`` sections (evaluation) left out."""
+    """CPU seconds of a run: training, evaluation, and the whole process.
 
-    def __init__(self, offset: float = 0.0):
+    * :meth:`seconds`: training, the process's CPU since the clock started with
+      the ``paused()`` sections (evaluation, saves) left out: what
+      ``collector.cpu_budget_s`` and ``time/cpu_s`` count;
+    * :meth:`evaluation`: the ``evaluating()`` sections (they are paused too);
+    * :meth:`process`: everything the process used since it started (imports, envs,
+      saves included) and its finished child processes (the store's commit worker
+      once closed): what a user pays for.
+
+    The offsets carry a resumed run's seconds from its earlier launches.
+
+    Args:
+        offset (float): training CPU-seconds before a resume.
+        eval_offset (float): evaluation CPU-seconds before a resume.
+        process_offset (float): process CPU-seconds of the earlier launches.
+
+    Example:
+        >>> clock = CpuClock()
+        >>> with clock.evaluating():
+        ...     _ = sum(range(10_000))
+        >>> clock.evaluation() >= 0 and clock.process() >= clock.seconds() + clock.evaluation() - 1e-6
+        True
+    """
+
+    def __init__(self, offset: float = 0.0, eval_offset: float = 0.0, process_offset: float = 0.0):
         self._start = time.process_time() - offset  # offset: CPU-seconds of the run before a resume
         self._excluded = 0.0
+        self._eval = float(eval_offset)
+        self._process_offset = float(process_offset)
 
     @contextlib.contextmanager
     def paused(self):
@@ -97,8 +123,24 @@ class CpuClock:
         finally:
             self._excluded += time.process_time() - t0
 
+    @contextlib.contextmanager
+    def evaluating(self):
+        """A paused section counted as evaluation."""
+        t0 = time.process_time()
+        with self.paused():
+            yield
+        self._eval += time.process_time() - t0
+
     def seconds(self) -> float:
         return time.process_time() - self._start - self._excluded
+
+    def evaluation(self) -> float:
+        return self._eval
+
+    def process(self) -> float:
+        own = resource.getrusage(resource.RUSAGE_SELF)
+        children = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return self._process_offset + own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def first_reach(curve: list, target: float | None) -> int | None:
@@ -108,11 +150,13 @@ def first_reach(curve: list, target: float | None) -> int | None:
     return next((int(x) for x, y in curve if y >= target), None)
 
 
-def finish_run(cfg: DictConfig, history: list[dict], history_path: str, summary: dict) -> None:
-    """The end of a run: ``summary.json``, one more line of the memory's history, the plot, the report."""
-    with open("summary.json", "w") as f:
-        json.dump(summary, f)
-    append_history(history_path, summary)
+def finish_run(cfg: DictConfig, history: list[dict], history_path: str, summary: dict,
+               clock: CpuClock | None = None) -> None:
+    """The end of a run: the plot, ``summary.json``, one more line of the memory's history, the report.
+
+    With ``clock``, the summary gets the run's evaluation and whole-process CPU-seconds
+    (``eval_cpu_s``, ``process_cpu_s``), read after the plot so that they count it.
+    """
     if cfg.logger.plot:  # this run, and the earlier runs on the same memory
         curves = {
             f"run {i + 1}: {run['algo']}, memory of {run['memory_rows_before']} transitions": run["curve"]
@@ -120,12 +164,20 @@ def finish_run(cfg: DictConfig, history: list[dict], history_path: str, summary:
         }
         if plot_success(curves, "success_rate.png", title=f"{cfg.env.name}, eval success"):
             print(f"plot: {os.path.abspath('success_rate.png')}")
+    if clock is not None:
+        summary["eval_cpu_s"] = round(clock.evaluation(), 2)
+        summary["process_cpu_s"] = round(clock.process(), 2)
+    with open("summary.json", "w") as f:
+        json.dump(summary, f)
+    append_history(history_path, summary)
     target, reached_at = cfg.logger.target_success, summary["frames_to_target"]
     print(
         f"evaluated success {summary['curve'][-1][1]:.2f} after {summary['frames']} new env frames "
         f"({summary['cpu_s']:.1f} CPU-s, {summary['updates']} updates); memory now {summary['memory_rows_after']} "
         "transitions" + (f"; reached {target} at {reached_at} frames" if reached_at is not None else "")
     )
+    if clock is not None:
+        print(cost_line(summary, target))
     earlier = [run for run in history if run.get("frames_to_target") is not None]
     if reached_at is not None and earlier:
         first = earlier[0]["frames_to_target"]
@@ -133,6 +185,25 @@ def finish_run(cfg: DictConfig, history: list[dict], history_path: str, summary:
             f"the first run on this memory needed {first} frames to reach {target}; "
             f"this one {reached_at}: {first - reached_at} fewer"
         )
+
+
+def cost_line(summary: dict, target: float | None = None) -> str:
+    """What the run cost: env frames (new, and in the memory) beside CPU-seconds (process, training, evaluation).
+
+    Example:
+        >>> cost_line({"frames": 0, "frames_to_target": 0, "memory_rows_before": 2750, "memory_rows_after": 2750,
+        ...            "process_cpu_s": 9.5, "cpu_s": 3.0, "eval_cpu_s": 1.1}, 0.95)
+        'frames to target 0.95: 0 new (2,750 total), CPU-s: 9.5 (training 3.0, evaluation 1.1, the rest 5.4)'
+    """
+    reached = summary.get("frames_to_target")
+    if reached is not None:
+        frames = f"frames to target {target}: {reached:,} new ({summary['memory_rows_before'] + reached:,} total)"
+    else:
+        missed = f", target {target} not reached" if target is not None else ""
+        frames = f"frames: {summary['frames']:,} new{missed} ({summary['memory_rows_after']:,} in the memory)"
+    total, train, evaluation = summary["process_cpu_s"], summary["cpu_s"], summary["eval_cpu_s"]
+    return (f"{frames}, CPU-s: {total:.1f} (training {train:.1f}, evaluation {evaluation:.1f}, "
+            f"the rest {max(0.0, total - train - evaluation):.1f})")
 
 
 def read_history(path: str) -> list[dict]:

@@ -6,20 +6,27 @@ update, log, evaluate), with these changes:
 * the replay buffer is a :class:`~torchrl.data.HERReplayBuffer` over a
   :class:`~torchrl_robotmem.ZarrStorage` at ``memory.path``: transitions outlive
   the run, and the next run with the same path continues on them;
-* a run that starts fresh networks on a non-empty memory first does
-  ``memory.pretrain_updates`` updates on it, before collecting anything;
+* a run that starts fresh networks on a non-empty memory first learns from it,
+  before collecting anything: ``memory.pretrain_updates`` updates at most,
+  checked every ``memory.pretrain_eval_every`` and stopped at the target success
+  or a plateau (``pretrain.py``);
 * optionally, :class:`~torchrl_robotmem.GoalSimilaritySampler` draws rows near
   the goals being chased now, and :class:`~torchrl_robotmem.RecallTransform`
   shows actor and critic the remembered goals nearest to their goal;
 * ``prior=mix|bc|clone 'prior.paths=[path, ...]'``: read-only memories of other
   runs, tasks or scripted controllers, sampled beside the run's own buffer, and
   what the actor learns from them (``prior_memory/``: ``PriorMix`` samples,
-  ``PriorTerms`` adds its loss terms to the update).
+  ``PriorTerms`` adds its loss terms to the update). Each prior's keys, shapes and
+  dtypes are checked against this task before the run's memory is opened
+  (float64 columns are cast to float32, the rest refused) and its rows,
+  episodes and success rate printed and kept in the run's summary.
 
 The agent (networks, optimiser, normaliser) is saved next to the memory at every
 evaluation, with the run's progress (frames, curve, CPU time) in the
 checkpoint's metadata: ``collector.resume=true`` continues a run that was
 stopped (killed, out of time) from its last evaluation, on the same memory.
+The run ends with its frames and CPU-seconds (the whole process: training,
+evaluation and the rest), printed and kept in its summary.
 
     python recipes/her/train.py                        # SAC, FetchReach-v4
     python recipes/her/train.py algo=td3 env=push seed=1
@@ -35,7 +42,8 @@ import torch
 import tqdm
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig
-from prior_memory import check_prior_config, make_prior_mix, make_prior_terms, step_schedules
+from pretrain import pretrain
+from prior_memory import check_prior_config, check_prior_memories, make_prior_mix, make_prior_terms, step_schedules
 from run_record import CpuClock, finish_run, first_reach, read_history, recover_checkpoint, run_progress
 from tensordict import TensorDict, TensorDictBase
 from torchrl.checkpoint import Checkpoint
@@ -49,6 +57,7 @@ from utils import (
     make_agent,
     make_collector,
     make_environment,
+    make_eval_env,
     make_logger,
     make_loss_module,
     make_optimizer,
@@ -77,6 +86,11 @@ def main(cfg: DictConfig) -> None:
     history = read_history(history_path)
     logger = make_logger(cfg)
 
+    # Prior memories (read-only): checked against this task (keys, shapes, dtypes) and summarised
+    # before the run's own memory is opened
+    priors = make_prior_buffers(cfg)
+    prior_dtypes, prior_summaries = check_prior_memories(cfg, priors)
+
     # Create the memory: storage, optional goal sampler, HER on top
     # beside prior memories the run's buffer is sampled in part-batches (PriorMix): no default size
     own_batch = None if cfg.prior.paths else cfg.optim.batch_size
@@ -88,16 +102,15 @@ def main(cfg: DictConfig) -> None:
     train_env, eval_env = make_environment(cfg, memory=replay_buffer.storage)
     recall = train_env.transform[-1] if cfg.memory.recall.enabled else None
 
-    # Prior memories (read-only), sampled beside the run's own buffer
-    priors = make_prior_buffers(cfg)
-    mix = make_prior_mix(cfg, replay_buffer, priors, example=train_env.fake_tensordict())
+    # Prior memories sampled beside the run's own buffer (floating columns cast to this run's dtypes)
+    mix = make_prior_mix(cfg, replay_buffer, priors, dtypes=prior_dtypes)
 
     # Create agent, loss (with the prior-memory terms), optimiser
     normalizer = GoalNormalizer(device=device)
     model, exploration_policy = make_agent(cfg, train_env, normalizer)
     loss_module, target_net_updater = make_loss_module(cfg, model)
     optimizer = make_optimizer(cfg, loss_module)
-    terms = make_prior_terms(cfg, loss_module, loss_keys(cfg), priors)
+    terms = make_prior_terms(cfg, loss_module, loss_keys(cfg), priors, dtypes=prior_dtypes)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
     if terms.anchor is not None:  # the cloned actor's outputs, saved with the agent
         checkpoint.register("clone_anchor", terms.anchor)
@@ -141,7 +154,9 @@ def main(cfg: DictConfig) -> None:
         + (" | agent resumed from checkpoint" if resumed else "")
         + (f" | run resumed at {collected_frames} frames" if progress else "")
     )
-    cpu = CpuClock(offset=progress["cpu_s"] if progress else 0.0)
+    cpu = CpuClock(offset=progress["cpu_s"] if progress else 0.0,
+                   eval_offset=progress.get("eval_cpu_s", 0.0) if progress else 0.0,
+                   process_offset=progress.get("process_cpu_s", 0.0) if progress else 0.0)
     curve: list[tuple[int, float]] = [tuple(point) for point in progress["curve"]] if progress else []
     if progress:  # other episodes than the first launch's
         torch.manual_seed(cfg.seed + collected_frames)
@@ -156,13 +171,18 @@ def main(cfg: DictConfig) -> None:
                 "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "updates": num_updates,
                 "memory_rows_before": remembered, "memory_rows": len(replay_buffer),
                 "frames": collected_frames, "cpu_s": cpu.seconds(), "curve": [list(p) for p in curve],
+                "eval_cpu_s": cpu.evaluation(), "process_cpu_s": cpu.process(),
                 "finished": finished,
             })
 
-    def log_eval(frames: int) -> float:
-        with cpu.paused():
-            metrics = evaluate(cfg, eval_env, model[0])
+    def full_eval(env=eval_env) -> dict:
+        with cpu.evaluating():
+            return evaluate(cfg, env, model[0])
+
+    def log_eval(frames: int, metrics: dict | None = None) -> float:
+        metrics = dict(full_eval() if metrics is None else metrics)
         metrics["time/cpu_s"] = cpu.seconds()
+        metrics["time/eval_cpu_s"] = cpu.evaluation()
         metrics["train/updates"] = num_updates
         curve.append((frames, metrics["eval/success_rate"]))
         if logger is not None:
@@ -186,10 +206,12 @@ def main(cfg: DictConfig) -> None:
         bc_mse = terms.clone([b.storage for b in priors], cfg.prior.clone_steps, batch_size=cfg.optim.batch_size,
                              lr=cfg.optim.lr, seed=cfg.seed)
         print(f"cloned the prior's actions into the actor: {cfg.prior.clone_steps} steps, mse {bc_mse:.4f}")
-    # Fresh networks on a memory that already holds transitions: learn from it first
+    # Fresh networks on a memory that already holds transitions: learn from it first, until it has done its job
+    pretrained = {"updates": 0, "checks": [], "stopped": None}
     if (remembered or mix is not None) and not resumed and cfg.memory.pretrain_updates:
-        for _ in tqdm.trange(cfg.memory.pretrain_updates, desc="updates on the memory", leave=False):
-            update(sample(), critic_only=cloned)
+        pretrained = pretrain_on_memory(cfg, lambda: update(sample(), critic_only=cloned), full_eval, cloned,
+                                        cpu, logger, replay_buffer.storage)
+        log_eval(0, pretrained["metrics"])
     success = curve[-1][1] if curve else log_eval(0)
     save(finished=False)
 
@@ -254,19 +276,55 @@ def main(cfg: DictConfig) -> None:
     if curve[-1][0] != collected_frames:
         log_eval(collected_frames)
 
-    # Persist the memory, then save the agent next to it; the run's summary, plot and report
+    # Persist the memory, then save the agent next to it; close the store (its commit worker's CPU counts
+    # once it has ended); the run's summary, plot and report
     save(finished=True)
-    finish_run(cfg, history, history_path, {
+    summary = {
         "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "memory_rows_before": remembered,
         "memory_rows_after": len(replay_buffer), "frames": collected_frames, "frames_to_target": reached_at,
         "cpu_s": round(cpu.seconds(), 2), "updates": num_updates, "curve": curve,
-    })
+        "pretrain_updates": pretrained["updates"], "pretrain_checks": pretrained["checks"],
+        "pretrain_stopped": pretrained["stopped"], "priors": prior_summaries,
+    }
     if hasattr(replay_buffer.storage, "close"):
         replay_buffer.storage.close()
     for env in (eval_env, train_env):
         if not env.is_closed:
             env.close()
+    finish_run(cfg, history, history_path, summary, clock=cpu)
 
+
+def pretrain_on_memory(cfg: DictConfig, step, full_eval, actor_fixed: bool, cpu: CpuClock, logger, memory) -> dict:
+    """``memory.pretrain_*``: updates on the memory until a check reaches the target, a plateau or the maximum.
+
+    The checks run ``memory.pretrain_eval_episodes`` episodes on their own eval env (a check at the
+    target is confirmed by ``full_eval``); the full evaluation where pretraining stopped is returned
+    in ``"metrics"`` (the run's evaluation at frame 0).
+    """
+    mem = cfg.memory
+    episodes = min(mem.pretrain_eval_episodes or cfg.logger.eval_episodes, cfg.logger.eval_episodes)
+    target = mem.pretrain_target if mem.pretrain_target is not None else cfg.logger.target_success
+    small = episodes < cfg.logger.eval_episodes
+    with cpu.evaluating():
+        check_env = make_eval_env(cfg, episodes, memory) if small else None
+
+    def on_check(updates: int, metrics: dict) -> None:
+        if logger is not None:
+            logger.log_metrics({"pretrain/success_rate": metrics["eval/success_rate"]}, updates)
+
+    out = pretrain(step, (lambda: full_eval(check_env)) if small else full_eval, mem.pretrain_updates,
+                   mem.pretrain_eval_every, target=target, patience=mem.pretrain_patience, actor_fixed=actor_fixed,
+                   confirm=full_eval if small else None, on_check=on_check)
+    if check_env is not None:
+        check_env.close()
+    if out["metrics"] is None:  # the last look was a small check: the full evaluation at frame 0
+        out["metrics"] = full_eval()
+    why = {"target": f"the target {target}", "patience": f"a plateau ({mem.pretrain_patience} checks without a "
+           "better success)", "max": "the maximum"}[out["stopped"]]
+    print(f"pretraining on the memory: {out['updates']} of at most {mem.pretrain_updates} updates, stopped at {why}; "
+          f"success at each check ({episodes} episodes, every {mem.pretrain_eval_every or mem.pretrain_updates} "
+          f"updates): {', '.join(f'{u}: {x:.2f}' for u, x in out['checks'])}")
+    return out
 
 if __name__ == "__main__":
     main()

@@ -174,21 +174,24 @@ def current_goals(collector: Collector, data: TensorDictBase) -> torch.Tensor:
 
 def make_environment(cfg: DictConfig, memory=None):
     """Train env (``env.num_envs`` in series) and eval env (one env per eval episode)."""
+    return make_task_env(cfg, cfg.env.num_envs, cfg.seed, memory), make_eval_env(cfg, cfg.logger.eval_episodes, memory)
 
-    def build(num_envs, seed):
-        recall = make_recall(cfg, memory) if memory is not None else None
-        transforms = [RewardSum()] + ([recall] if recall is not None else [])
-        return make_env(
-            cfg.env.name,
-            num_envs,
-            seed=seed,
-            max_episode_steps=cfg.env.max_episode_steps,
-            transforms=transforms,
-        )
 
-    train_env = build(cfg.env.num_envs, cfg.seed)
-    eval_env = build(cfg.logger.eval_episodes, cfg.seed + 10_000)
-    return train_env, eval_env
+def make_task_env(cfg: DictConfig, num_envs: int, seed: int, memory=None):
+    """``num_envs`` envs of ``cfg.env.name`` in series, with the episode reward and (when enabled) recall."""
+    recall = make_recall(cfg, memory) if memory is not None else None
+    transforms = [RewardSum()] + ([recall] if recall is not None else [])
+    return make_env(cfg.env.name, num_envs, seed=seed, max_episode_steps=cfg.env.max_episode_steps,
+                    transforms=transforms)
+
+
+def make_eval_env(cfg: DictConfig, episodes: int, memory=None):
+    """An evaluation env: one env per episode, seeded as :func:`eval_rollout` reseeds it (fixed goals).
+
+    The run's eval env has ``logger.eval_episodes``; the pretraining checks one of
+    ``memory.pretrain_eval_episodes``, cheaper.
+    """
+    return make_task_env(cfg, episodes, cfg.seed + 10_000, memory)
 
 
 def train_device(cfg: DictConfig) -> torch.device:

@@ -13,6 +13,8 @@ One job a module:
   (``prior.clone_anchor``);
 * ``schedules``: the annealed prior share and anchor weight;
 * ``terms``: :class:`PriorTerms`, the one object the update asks for its loss;
+* ``layout``: each prior's keys, shapes and dtypes checked against the run's
+  task (floating dtypes cast, the rest refused), and its summary;
 * ``builders``: all of the above from the ``prior`` config group.
 
 ``recipes/her/train.py`` imports it as ``prior_memory`` (a script's own
@@ -20,7 +22,8 @@ directory is on ``sys.path``); the tools import ``recipes.her.prior_memory``.
 """
 from .anchor import CloneAnchor
 from .bc import CRRActorLoss, PriorBC, load_demos, pretrain_actor
-from .builders import check_prior_config, make_prior_mix, make_prior_terms, step_schedules
+from .builders import check_prior_config, check_prior_memories, make_prior_mix, make_prior_terms, step_schedules
+from .layout import cast_rows, check_prior_layout, describe_prior, prior_summary
 from .mix import PRIOR_KEY, TRANSITION_KEYS, PriorMix
 from .schedules import clone_anchor_weight, prior_ratio
 from .terms import PriorTerms
@@ -33,12 +36,17 @@ __all__ = [
     "PriorBC",
     "PriorMix",
     "PriorTerms",
+    "cast_rows",
     "check_prior_config",
+    "check_prior_layout",
+    "check_prior_memories",
+    "describe_prior",
     "clone_anchor_weight",
     "load_demos",
     "make_prior_mix",
     "make_prior_terms",
     "pretrain_actor",
     "prior_ratio",
+    "prior_summary",
     "step_schedules",
 ]

@@ -34,6 +34,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
 from .actor_critic import ActorCritic, loss_device
+from .layout import cast_rows
 from .mix import PRIOR_KEY
 
 __all__ = ["CRRActorLoss", "PriorBC", "load_demos", "pretrain_actor"]
@@ -185,10 +186,13 @@ def pretrain_actor(
     return float(sum(losses[-100:]) / len(losses[-100:]))
 
 
-def load_demos(loss_module: LossModule, storages: list, success_only: bool = True) -> TensorDictBase:
+def load_demos(loss_module: LossModule, storages: list, success_only: bool = True,
+               dtypes: dict | None = None) -> TensorDictBase:
     """The prior memories' rows an actor can imitate: what the actor reads and the action, original goals.
 
-    ``success_only`` keeps the episodes whose ``episode_success`` is set, where the memory records it.
+    ``success_only`` keeps the episodes whose ``episode_success`` is set, where the memory records it;
+    ``dtypes`` (``{key: dtype}``, :func:`~.layout.check_prior_layout`) casts the keys a prior stores
+    in another floating dtype (float64 from a raw Gymnasium env) to the run's.
 
     Example:
         >>> demos = load_demos(loss_module, [ZarrStorage("memory/scripted/push.zarr", read_only=True)])
@@ -205,7 +209,7 @@ def load_demos(loss_module: LossModule, storages: list, success_only: bool = Tru
         if missing:
             raise KeyError(f"a prior memory holds no {missing}: the actor reads {actor.in_keys} "
                            "(prior.clone_steps, prior.bc_original_goals).")
-        parts.append(rows.select(*keys).clone())
+        parts.append(cast_rows(rows.select(*keys).clone(), dtypes))
     data = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
     if not data.shape[0]:
         raise ValueError("no prior rows to imitate (no successful episodes in prior.paths?).")

@@ -4,13 +4,16 @@ from __future__ import annotations
 from omegaconf import DictConfig
 from torchrl.objectives import LossModule
 
+from torchrl_robotmem import make_env
+
 from .anchor import CloneAnchor
 from .bc import PriorBC, load_demos
+from .layout import check_prior_layout, describe_prior, prior_summary
 from .mix import TRANSITION_KEYS, PriorMix
 from .schedules import clone_anchor_weight, prior_ratio
 from .terms import PriorTerms
 
-__all__ = ["check_prior_config", "make_prior_mix", "make_prior_terms", "step_schedules"]
+__all__ = ["check_prior_config", "check_prior_memories", "make_prior_mix", "make_prior_terms", "step_schedules"]
 
 ACTOR_UPDATES = ("q_gradient", "crr")
 
@@ -35,21 +38,64 @@ def check_prior_config(cfg: DictConfig) -> None:
                          "set prior.paths=[path, ...] too.")
 
 
-def make_prior_mix(cfg: DictConfig, own, priors: list, example=None) -> PriorMix | None:
-    """A :class:`PriorMix` of the run's buffer and its prior memories (``None`` without ``prior.paths``)."""
+def check_prior_memories(cfg: DictConfig, priors: list, log=print) -> tuple[dict, list[dict]]:
+    """Every prior memory checked against the run's task, and summarised, before the run's memory is opened.
+
+    Each prior's keys, shapes and dtypes are compared with one transition of
+    ``cfg.env.name`` (:func:`~.layout.check_prior_layout`: floating dtypes that
+    differ are cast, anything else is refused) and its path, rows, episodes and
+    success rate printed (:func:`~.layout.prior_summary`).
+
+    Args:
+        cfg (DictConfig): the run's config (``env.name``).
+        priors (list): HER buffers over the read-only prior memories (``utils.make_prior_buffers``).
+        log: where the lines go.
+
+    Returns:
+        ``(dtypes, summaries)``: ``{key: dtype}`` to cast prior rows to, and one summary dict a prior.
+
+    Example:
+        >>> dtypes, summaries = check_prior_memories(cfg, make_prior_buffers(cfg))
+        >>> mix = make_prior_mix(cfg, own_buffer, priors, dtypes=dtypes)
+    """
+    dtypes, summaries = {}, []
+    if not priors:
+        return dtypes, summaries
+    env = make_env(cfg.env.name)
+    try:
+        example = env.fake_tensordict()
+    finally:
+        env.close()
+    for buffer in priors:
+        summaries.append(prior_summary(buffer.storage))
+        log(describe_prior(summaries[-1]))
+        dtypes.update(check_prior_layout(buffer.storage, example, TRANSITION_KEYS, cfg.env.name, log=log))
+    return dtypes, summaries
+
+
+def make_prior_mix(cfg: DictConfig, own, priors: list, example=None, dtypes: dict | None = None) -> PriorMix | None:
+    """A :class:`PriorMix` of the run's buffer and its prior memories (``None`` without ``prior.paths``).
+
+    ``dtypes``: the casts of :func:`check_prior_memories` (priors already checked); ``example``:
+    one transition of the task to check them against here instead.
+    """
     if not priors:
         return None
-    mix = PriorMix(own, priors, cfg.prior.ratio, cfg.env.name, TRANSITION_KEYS, example=example)
+    mix = PriorMix(own, priors, cfg.prior.ratio, cfg.env.name, TRANSITION_KEYS, example=example, dtypes=dtypes)
     mix.ratio = prior_ratio(cfg, 0)  # raises on a ratio or schedule end outside [0, 1]
     return mix
 
 
-def make_prior_terms(cfg: DictConfig, loss_module: LossModule, keys: tuple, priors: list) -> PriorTerms:
-    """The :class:`~.terms.PriorTerms` of ``prior.bc`` / ``prior.actor_update`` / ``prior.clone_anchor``."""
+def make_prior_terms(cfg: DictConfig, loss_module: LossModule, keys: tuple, priors: list,
+                     dtypes: dict | None = None) -> PriorTerms:
+    """The :class:`~.terms.PriorTerms` of ``prior.bc`` / ``prior.actor_update`` / ``prior.clone_anchor``.
+
+    ``dtypes``: the casts of :func:`check_prior_memories`, applied to the rows cloned into the actor.
+    """
     prior = cfg.prior
     demos = None  # the prior's successful rows with their own goals, read once for cloning and BC
     if prior.clone_steps or (prior.bc and prior.bc_original_goals):
-        demos = load_demos(loss_module, [b.storage for b in priors])
+        demos = load_demos(loss_module, [b.storage for b in priors], dtypes=dtypes)
     bc = None
     if prior.bc:
         bc = PriorBC(loss_module, prior.bc, q_filter=prior.bc_q_filter,

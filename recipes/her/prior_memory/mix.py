@@ -24,6 +24,8 @@ from tensordict import TensorDictBase
 
 from torchrl_robotmem import make_reward_fn
 
+from .layout import cast_rows, check_prior_layout, key_name
+
 __all__ = ["PRIOR_KEY", "TRANSITION_KEYS", "PriorMix"]
 
 #: bool ``[batch]``: True for the rows a batch drew from a prior memory.
@@ -51,36 +53,33 @@ class PriorMix:
         keys (list): the keys a batch must hold (the run's own layout); prior
             memories may hold more (e.g. a scripted controller's parameters).
         example (TensorDictBase, optional): one transition of this task: the prior
-            memories' shapes are checked against it.
+            memories' keys, shapes and dtypes are checked against it (:func:`~.layout.check_prior_layout`).
+        dtypes (dict, optional): ``{key: dtype}`` to cast the prior rows' keys to, as
+            :func:`~.layout.check_prior_layout` returned them (priors already checked).
 
     Example:
         >>> mix = PriorMix(own, [prior_buffer], 0.5, "FetchPush-v4", TRANSITION_KEYS)
         >>> batch = mix.sample(256)          # 128 own rows, 128 prior rows marked batch["from_prior"]
     """
 
-    def __init__(self, own, priors: list, ratio: float, env_name: str, keys: list, example=None) -> None:
+    def __init__(self, own, priors: list, ratio: float, env_name: str, keys: list, example=None,
+                 dtypes: dict | None = None) -> None:
         self.own, self.priors, self.ratio = own, priors, ratio
         self.reward_fn = make_reward_fn(env_name)
         self.keys = keys
         sizes = torch.tensor([float(len(p)) for p in priors])
         self._weights = sizes / sizes.sum() if len(priors) else sizes
+        self.dtypes = dict(dtypes or {})  # the run's dtype of each key some prior stores in another float dtype
         for p in priors:  # a prior memory must carry everything the run's batches hold
-            row = p.storage[0:1] if len(p.storage) else None  # one stored transition: the prior's keys and shapes
-            have = set(row.keys(True, True)) if row is not None else set()
-            missing = [k for k in keys if k not in have]
-            wrong = []
-            if example is not None:  # one transition of this task (shapes after the batch dims)
-                for k in keys:
-                    if k in have and k in example.keys(True, True):
-                        got = tuple(row.get(k).shape[1:])
-                        want = tuple(example.get(k).shape[example.batch_dims:])
-                        if got != want:
-                            wrong.append(f"{k}: {list(got)} vs {list(want)}")
-            if missing or wrong:
+            if example is not None:  # one transition of this task: keys, shapes and dtypes checked against it
+                self.dtypes.update(check_prior_layout(p.storage, example, keys, env_name))
+                continue
+            have = set(p.storage[0:1].keys(True, True)) if len(p.storage) else set()
+            missing = [key_name(k) for k in keys if k not in have]
+            if missing:
                 raise ValueError(
                     f"the prior memory {p.storage.path!r} was written for another observation layout "
-                    f"than {env_name}'s (missing {missing}; shapes {wrong}): e.g. FetchReach's 10-d "
-                    "observation vs FetchPush's 25-d. Use memories of tasks with the same layout."
+                    f"than {env_name}'s (missing {missing}). Use memories of tasks with the same layout."
                 )
 
     @property
@@ -101,7 +100,7 @@ class PriorMix:
     def prior_rows(self) -> Iterator[TensorDictBase]:
         """Every row of each prior memory, with the keys a batch holds (for the normaliser's statistics)."""
         for buffer in self.priors:
-            yield buffer[:].select(*self.keys, strict=False)
+            yield cast_rows(buffer[:].select(*self.keys, strict=False), self.dtypes)
 
     def sample(self, batch_size: int, query=None) -> TensorDictBase:
         """A batch: ``batch_size * ratio`` rows from the priors, the rest from the run's own buffer.
@@ -118,7 +117,7 @@ class PriorMix:
             counts = torch.distributions.Multinomial(n_prior, self._weights).sample().long().tolist()
             for buffer, k in zip(self.priors, counts):
                 if k:
-                    batch = buffer.sample(k).select(*self.keys, strict=False)
+                    batch = cast_rows(buffer.sample(k).select(*self.keys, strict=False), self.dtypes)
                     batch.set(("next", "reward"), self.reward_fn(batch))  # the current task's reward
                     batch.set(PRIOR_KEY, torch.ones(batch.shape, dtype=torch.bool))
                     parts.append(batch)

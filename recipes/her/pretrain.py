@@ -1,0 +1,107 @@
+"""Updates of fresh networks on a non-empty memory before collecting, stopped once they have done their job.
+
+A run that starts fresh networks on a memory that already holds transitions
+first learns from it (``memory.pretrain_updates`` at most). Every
+``memory.pretrain_eval_every`` updates the actor is checked: the recipe's
+deterministic evaluation on ``memory.pretrain_eval_episodes`` fixed goals (fewer
+than ``logger.eval_episodes``: a check costs less). Pretraining stops once a
+check reaches ``memory.pretrain_target`` (``logger.target_success`` when null)
+and the full evaluation confirms it, or when ``memory.pretrain_patience``
+checks in a row did not beat the best one. The full evaluation where it stops
+is the run's evaluation at frame 0.
+
+``train.py`` imports it as ``pretrain``; like ``utils.py`` it imports no sibling.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import tqdm
+
+__all__ = ["pretrain"]
+
+
+def pretrain(
+    update: Callable[[], object],
+    check: Callable[[], dict],
+    max_updates: int,
+    eval_every: int = 250,
+    target: float | None = None,
+    patience: int = 3,
+    actor_fixed: bool = False,
+    confirm: Callable[[], dict] | None = None,
+    on_check: Callable[[int, dict], None] | None = None,
+) -> dict:
+    """Runs up to ``max_updates`` calls of ``update``, checking the actor every ``eval_every``; stops when done.
+
+    Args:
+        update: one gradient step (takes no argument).
+        check: an evaluation of the actor as it is now; returns metrics with ``"eval/success_rate"``.
+        max_updates (int): the most updates (``memory.pretrain_updates``).
+        eval_every (int): updates between two checks; ``0``: check only after all of them.
+        target (float, optional): stop at this evaluated success or above.
+        patience (int): stop after this many checks in a row without a better success
+            than the best so far; ``0``: never for that reason.
+        actor_fixed (bool): the updates do not move the actor (critic-only pretraining of a
+            cloned actor): it is checked before them, where the target may already be met,
+            and after all of them.
+        confirm (callable, optional): the full evaluation, when ``check`` is a smaller one: a check
+            at the target stops pretraining only if ``confirm`` reaches it too (its result then
+            stands for that check). ``None``: ``check`` is the full evaluation.
+        on_check: called with ``(updates done, metrics)`` after every check (logging).
+
+    Returns:
+        ``{"updates": done, "checks": [[updates, success], ...], "stopped": "target" | "patience" | "max",
+        "metrics": the full evaluation at ``updates`` or ``None`` where the last was a smaller check}``.
+
+    Example:
+        >>> steps = []
+        >>> out = pretrain(lambda: steps.append(1), lambda: {"eval/success_rate": min(1.0, len(steps) / 500)},
+        ...                max_updates=3000, eval_every=250, target=0.95)
+        >>> out["updates"], out["stopped"], out["checks"]
+        (500, 'target', [[250, 0.5], [500, 1.0]])
+        >>> flat = pretrain(lambda: None, lambda: {"eval/success_rate": 0.2}, 3000, 250, target=0.95, patience=2)
+        >>> flat["updates"], flat["stopped"], flat["metrics"]
+        (750, 'patience', {'eval/success_rate': 0.2})
+    """
+    checks: list[list] = []
+    state = {"best": -math.inf, "since_best": 0, "full": None}
+
+    def look(done: int) -> str | None:
+        metrics, state["full"] = check(), None
+        if confirm is None:
+            state["full"] = metrics
+        elif target is not None and metrics["eval/success_rate"] >= target:
+            metrics = state["full"] = confirm()  # a small check at the target: the full evaluation decides
+        success = metrics["eval/success_rate"]
+        checks.append([done, success])
+        if on_check is not None:
+            on_check(done, metrics)
+        if target is not None and success >= target:
+            return "target"
+        if success > state["best"]:
+            state["best"], state["since_best"] = success, 0
+        else:
+            state["since_best"] += 1
+        return "patience" if patience and state["since_best"] >= patience else None
+
+    def result(done: int, stopped: str) -> dict:
+        return {"updates": done, "checks": checks, "stopped": stopped, "metrics": state["full"]}
+
+    if actor_fixed:  # the actor will not move: one look before, one after
+        if look(0) == "target":
+            return result(0, "target")
+        eval_every = 0
+    done, stopped = 0, None
+    with tqdm.tqdm(total=max_updates, desc="updates on the memory", leave=False) as bar:
+        while done < max_updates and stopped is None:
+            n = max_updates - done if eval_every <= 0 else min(eval_every, max_updates - done)
+            for _ in range(n):
+                update()
+            done += n
+            bar.update(n)
+            stopped = look(done)
+            if actor_fixed and stopped == "patience":  # one look after, whatever it says
+                stopped = None
+    return result(done, stopped or "max")
