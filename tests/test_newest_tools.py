@@ -63,6 +63,22 @@ def test_tensordict_reads_a_memory(tmp_path, where):
     st.close()
 
 
+def test_tensordict_reads_a_wrapped_memory(tmp_path):
+    """A ring that wrapped: every row valid, ``_journal`` is not rows, oldest row at ``cursor``."""
+    gen = torch.Generator().manual_seed(5)
+    first, second = fetch_rows(1000, gen), fetch_rows(500, gen, start=1000)
+    st = write_memory(str(tmp_path / "m.zarr"), first)
+    TensorDictReplayBuffer(storage=st).extend(second)
+    st.close()
+    attrs = zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs
+    assert (attrs["len"], attrs["cursor"]) == (1024, 1500 - 1024)
+    rows = TensorDict.from_zarr(str(tmp_path / "m.zarr"))[: attrs["len"]].to_tensordict().exclude("_journal")
+    in_time_order = rows.roll(-attrs["cursor"], 0)
+    expected = torch.cat([first, second])[-1024:]
+    for key in expected.keys(True, True):
+        assert torch.equal(in_time_order[key], expected[key]), key
+
+
 def test_a_tensordict_store_is_not_a_memory_but_imports_into_one(tmp_path):
     """``to_zarr`` writes no commit record: ZarrStorage refuses it, and takes its rows through ``extend``."""
     rows = fetch_rows(200, torch.Generator().manual_seed(1))
