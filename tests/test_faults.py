@@ -166,8 +166,12 @@ for step in range(1000):
     exec(compile(seed.replace("range(1000)", "range(120)"), "seed-quick-start", "exec"), namespace)
     mem = namespace["mem"]
     assert len(mem) == 120 and (tmp_path / "gym_robotics.db" / "zarr.json").exists()
+    # the seed's loop never resets the env: one episode, so one past episode to recall (its nearest step),
+    # and the five nearest steps one argument away
     prior = mem.recall(namespace["obs"]["desired_goal"], top_k=5)
-    assert prior["mask"].all() and mem.storage.env_names == ("FetchPickAndPlace-v3",)
+    assert prior["mask"].tolist() == [True, False, False, False, False]
+    assert mem.recall(namespace["obs"]["desired_goal"], top_k=5, one_per_episode=False)["mask"].all()
+    assert mem.storage.env_names == ("FetchPickAndPlace-v3",)
     mem.close()
     with pytest.raises(TypeError, match="db="):
         RobotMemory()

@@ -100,7 +100,7 @@ def test_sampler_transform_and_robotmemory_share_one_index(tmp_path):
     with sampler.query(goals[0]):
         assert rb.sample()["goal_distance"].shape == (32,)
     priors = transform.forward(TensorDict({"desired_goal": goals}, [4]))
-    recalled = mem.recall(goals, top_k=3)
+    recalled = mem.recall(goals, top_k=3, one_per_episode=False)  # rows, as the transform's priors
 
     index = mem.index
     assert sampler.index_for(mem.storage) is index
@@ -110,7 +110,7 @@ def test_sampler_transform_and_robotmemory_share_one_index(tmp_path):
     assert torch.equal(priors["prior_goals"], recalled[GOAL])
     # new rows reach all three through the one index, without a rebuild
     rb.extend(fetch_rows(100, gen, start=2000))
-    fresh = mem.recall(goals, top_k=3)
+    fresh = mem.recall(goals, top_k=3, one_per_episode=False)
     assert torch.equal(transform.forward(TensorDict({"desired_goal": goals}, [4]))["prior_goals"], fresh[GOAL])
     with sampler.query(goals):
         rb.sample()
@@ -328,8 +328,9 @@ def test_filter_keywords_and_row_filter_give_the_same_rows(tmp_path):
         assert torch.equal(recall(rb, queries, 5, **kw)["index"], rows)
         assert torch.equal(index.recall(queries, 5, **kw)["index"], rows)
         # the memory's own reader (another ZarrStorage object on the same store): the same rows
-        assert torch.equal(mem.recall(queries, top_k=5, **kw)["index"], rows)
-        assert torch.equal(mem.recall(queries, top_k=5, filter=flt)["index"], rows)
+        # (RobotMemory recalls episodes by default: one_per_episode=False asks for rows, as the others)
+        assert torch.equal(mem.recall(queries, top_k=5, **{"one_per_episode": False, **kw})["index"], rows)
+        assert torch.equal(mem.recall(queries, top_k=5, filter=flt, one_per_episode=False)["index"], rows)
         by_keywords = RecallTransform(rb, 5, **kw)
         by_filter = RecallTransform(rb, 5, filter=flt)
         assert by_keywords.filter == by_filter.filter == flt

@@ -291,8 +291,8 @@ class RobotMemory:
                 raise KeyError("spatial_sort needs a 'target' goal, e.g. {'target': desired_goal}.")
             desired_goal = spatial_sort["target"]
         flt = RowFilter.coerce(filter, **filter_keywords)
-        if one_per_episode and not flt.one_per_episode:
-            flt = dataclasses.replace(flt, one_per_episode=True)
+        # checked as RowFilter checks it (a bool); a filter= asking for episodes keeps them
+        flt = dataclasses.replace(flt, one_per_episode=flt.one_per_episode or one_per_episode)
         return self.index.recall(desired_goal, top_k, filter=flt)
 
     def __len__(self) -> int:
