@@ -216,3 +216,15 @@ def test_offline_fraction_bounds_and_the_recipes_schedule(two_memories):
     for frames in (0, 250, 1000, 4000):
         rb.anneal(min(frames, horizon), horizon * start / (start - final))
         assert rb.offline_fraction == pytest.approx(prior_ratio(cfg, frames))
+
+
+def test_offline_to_online_online_side_resumes(two_memories, tmp_path):
+    """The online ``ReplayBuffer`` over a reopened ZarrStorage appends after the last run's rows."""
+    prior, own, _, own_rows = two_memories
+    OfflineToOnlineReplayBuffer(prior, online_storage=own).extend(own_rows[:300])
+    own.close()
+    again = ZarrStorage(own.path)
+    OfflineToOnlineReplayBuffer(prior, online_storage=again).extend(own_rows[300:])
+    assert len(again) == 500 and torch.equal(again[:]["observation"], own_rows["observation"])
+    assert again["run"].unique().tolist() == [0, 1]
+    again.close()
