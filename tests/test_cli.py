@@ -247,8 +247,8 @@ def test_existing_targets_and_bad_sources_are_refused(memory, tmp_path, capsys, 
     assert "NAME-vVERSION" in capsys.readouterr().err
     bad = tmp_path / "bad.npz"
     np.savez(bad, x=np.zeros(3))
-    assert main(["import", str(bad), str(tmp_path / "new.zarr")]) == 2
-    assert "is not an npz export" in capsys.readouterr().err
+    assert main(["import", str(bad), str(tmp_path / "new.zarr")]) == 2  # a plain npz without the layout's arrays
+    assert "is a plain npz (no '__robotmem__' record) without the arrays ['observation'" in capsys.readouterr().err
     assert not (tmp_path / "new.zarr").exists()
     assert main(["import", str(tmp_path / "nowhere-v0"), str(tmp_path / "new.zarr")]) == 2
     assert not (tmp_path / "new.zarr").exists()

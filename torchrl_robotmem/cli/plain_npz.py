@@ -147,7 +147,7 @@ def import_plain_npz(data, src: str, path: str, *, max_size: int | None = None, 
         >>> np.savez(d + "/t.npz", observation=np.zeros((6, 3)), next_observation=np.ones((6, 3)),
         ...          action=np.zeros((6, 2)), reward=np.zeros(6), episode=np.repeat([0, 1], 3))
         >>> notes = []
-        >>> import_plain_npz(np.load(d + "/t.npz"), d + "/t.npz", d + "/m.zarr", notes=notes)
+        >>> import_plain_npz(np.load(d + "/t.npz"), d + "/t.npz", d + "/m.zarr", env="FetchReach-v4", notes=notes)
         6
         >>> notes[-1]
         'float64 stored as float32 (--keep-float64 keeps it): action, next/observation, next/reward, observation'
@@ -164,4 +164,4 @@ def import_plain_npz(data, src: str, path: str, *, max_size: int | None = None, 
     cast = cast_float64(cols, keep_float64=keep_float64)
     if cast:
         notes.append(f"float64 stored as float32 (--keep-float64 keeps it): {', '.join(sorted(cast))}")
-    return write_transitions(path, cols, capacity=max_size, env=env, src=src)
+    return write_transitions(path, cols, capacity=max_size, env=env, src=src, notes=notes)

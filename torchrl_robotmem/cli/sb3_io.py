@@ -191,4 +191,4 @@ def import_sb3(src: str, path: str, *, trust_pickle: bool = False, max_size: int
     cast = cast_float64(cols, keep_float64=keep_float64)
     if cast:
         notes.append(f"float64 stored as float32 (--keep-float64 keeps it): {', '.join(sorted(cast))}")
-    return write_transitions(path, cols, capacity=max_size, env=env, src=src)
+    return write_transitions(path, cols, capacity=max_size, env=env, src=src, notes=notes)

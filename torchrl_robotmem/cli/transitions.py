@@ -16,6 +16,7 @@ can be recomputed from the env's own ``compute_reward``
 """
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -124,7 +125,7 @@ def success_from_env(env: str | None, next_achieved: np.ndarray, desired: np.nda
 
 
 def write_transitions(path: str, columns: dict[str, np.ndarray], *, capacity: int | None = None,
-                      env: str | None = None, src: str = "") -> int:
+                      env: str | None = None, src: str = "", notes: list[str] | None = None) -> int:
     """Creates the memory ``path`` holding ``columns`` (flat keys, ``/`` for nesting), one row per transition.
 
     Rows must be in time order with each episode contiguous and its last row
@@ -139,6 +140,8 @@ def write_transitions(path: str, columns: dict[str, np.ndarray], *, capacity: in
         capacity (int, optional): ``max_size`` (default: ``N``).
         env (str, optional): the env name every row is tagged with.
         src (str): the source, named in errors.
+        notes (list, optional): without ``env``, a line saying the rows carry no env name is appended here
+            (instead of the storage's warning).
 
     Returns:
         The number of rows written.
@@ -172,7 +175,9 @@ def write_transitions(path: str, columns: dict[str, np.ndarray], *, capacity: in
             node = node.setdefault(part, {})
         node[leaf] = torch.from_numpy(np.ascontiguousarray(value))
     td = TensorDict(nested, batch_size=[n])
-    with new_store(path, capacity, background=True, env=env) as storage:
+    with new_store(path, capacity, background=True, env=env) as storage, warnings.catch_warnings():
+        if env is None:  # said once below, naming the flag, not the hidden build's path
+            warnings.filterwarnings("ignore", message=".*have no env name", category=UserWarning)
         rb = ReplayBuffer(storage=storage, batch_size=1)
         try:
             for start in progress(range(0, n, _CHUNK), desc="import", unit="chunk"):
@@ -180,4 +185,7 @@ def write_transitions(path: str, columns: dict[str, np.ndarray], *, capacity: in
         except (ValueError, TypeError, KeyError, RuntimeError) as err:  # what the storage refuses: a reserved key...
             raise CLIError(f"{src!r}: {err}") from None
         rows = len(storage)
+    if env is None and notes is not None:
+        notes.append("the rows carry no env name (pass --env ENV_ID to tag them; recall(env=...) and per-env "
+                     "statistics need it)")
     return rows
