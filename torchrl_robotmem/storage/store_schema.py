@@ -31,6 +31,7 @@ from typing import Any
 from tensordict import TensorDictBase
 
 from . import _backend
+from .context import user_stacklevel
 from .format import write_zero_chunks
 from .planner import StoreView, WritePlan
 from .schema import DataKind, PackedLayout, create_arrays, default_chunk_rows, spec_of, with_constants
@@ -82,7 +83,7 @@ class StoreSchema:
         """What a valid plan says of the columns: the data kind (first write) and a warning, given once."""
         if plan.warning is not None and not self.warned:
             self.warned = True
-            warnings.warn(plan.warning, stacklevel=6)
+            warnings.warn(plan.warning, stacklevel=user_stacklevel())  # at the user's line
         if self.mirror.schema is None:
             self.kind = plan.kind  # recorded with the schema at the first write
 
