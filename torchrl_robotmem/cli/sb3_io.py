@@ -151,6 +151,8 @@ def sb3_columns(buf, *, src: str, env: str | None = None, notes: list[str] | Non
                      f"kept none)")
     elif "next/is_success" in cols:
         notes.append(f"is_success from the buffer's infos for {n:,} rows")
+    else:
+        notes.append("no is_success stored (the buffer has no goals and its infos kept none)")
     return cols
 
 

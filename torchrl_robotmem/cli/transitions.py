@@ -141,7 +141,7 @@ def write_transitions(path: str, columns: dict[str, np.ndarray], *, capacity: in
         env (str, optional): the env name every row is tagged with.
         src (str): the source, named in errors.
         notes (list, optional): without ``env``, a line saying the rows carry no env name is appended here
-            (instead of the storage's warning).
+            (the importers note a missing success flag: the storage's warning is not shown).
 
     Returns:
         The number of rows written.
@@ -176,8 +176,9 @@ def write_transitions(path: str, columns: dict[str, np.ndarray], *, capacity: in
         node[leaf] = torch.from_numpy(np.ascontiguousarray(value))
     td = TensorDict(nested, batch_size=[n])
     with new_store(path, capacity, background=True, env=env) as storage, warnings.catch_warnings():
-        if env is None:  # said once below, naming the flag, not the hidden build's path
-            warnings.filterwarnings("ignore", message=".*have no env name", category=UserWarning)
+        if env is None or "next/is_success" not in columns:  # the notes say it, naming the flag, not the hidden
+            warnings.filterwarnings("ignore", message="ZarrStorage at .*: the rows written have no",  # build's path
+                                    category=UserWarning)
         rb = ReplayBuffer(storage=storage, batch_size=1)
         try:
             for start in progress(range(0, n, _CHUNK), desc="import", unit="chunk"):
