@@ -39,8 +39,10 @@ def test_stock_sota_script_swapped_to_zarr_keeps_scratch_dir(tmp_path):
     path, scratch = str(tmp_path / "rb.zarr"), str(tmp_path / "scratch")
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
-        # was: TensorDictReplayBuffer(storage=LazyMemmapStorage(1000, scratch_dir=scratch), batch_size=32)
-        rb = TensorDictReplayBuffer(storage=ZarrStorage(path, max_size=1000, scratch_dir=scratch), batch_size=32)
+        # was (sota sac/utils.py): TensorDictReplayBuffer(pin_memory=False, prefetch=3,
+        #     storage=LazyMemmapStorage(1000, scratch_dir=scratch, device="cpu"), batch_size=32)
+        rb = TensorDictReplayBuffer(pin_memory=False, prefetch=3, batch_size=32,
+                                    storage=ZarrStorage(path, 1000, scratch_dir=scratch, device="cpu"))
         _collect(rb, lambda: GymEnv("FetchReach-v4"))
         batch = rb.sample()
     scratch_warnings = _caught(record, "scratch_dir is ignored")
