@@ -1,0 +1,88 @@
+"""A memory written by one zarr release opens, verifies and takes new rows under another.
+
+``tests/fixtures/store-zarr-<VERSION>.tar.gz`` are the same deterministic memory
+(``tests/fixtures/make_version_store.py``: 160 FetchPush-shaped rows written in
+two runs) written by different zarr releases: 3.1 (what CI installs) and 3.4
+(the newest the index serves for Python 3.12). Every fixture is checked under
+the zarr this suite runs with, so CI covers 3.4 -> 3.1 and the Python 3.12 run
+(README, "Supported versions") covers 3.1 -> 3.4.
+"""
+from __future__ import annotations
+
+import json
+import pathlib
+import tarfile
+
+import pytest
+import torch
+import zarr
+from tensordict import TensorDict
+from torchrl.data import TensorDictReplayBuffer
+
+from torchrl_robotmem import GoalIndex, ZarrStorage
+from torchrl_robotmem.storage.integrity import verify
+
+FIXTURES = pathlib.Path(__file__).resolve().parent / "fixtures"
+TARBALLS = sorted(FIXTURES.glob("store-zarr-*.tar.gz"))
+
+
+def _make_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_version_store", FIXTURES / "make_version_store.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+FIX = _make_module()
+
+
+def _extract(tarball: pathlib.Path, into: pathlib.Path) -> tuple[pathlib.Path, dict]:
+    with tarfile.open(tarball) as tar:
+        tar.extractall(into, filter="data")
+    return into / "memory", json.loads((into / "written_by.json").read_text())
+
+
+def test_fixtures_cover_two_zarr_releases():
+    versions = {p.name.removeprefix("store-zarr-").removesuffix(".tar.gz") for p in TARBALLS}
+    assert {"3.1", "3.4"} <= versions, f"fixtures present: {sorted(versions)}"
+
+
+@pytest.mark.parametrize("tarball", TARBALLS, ids=[p.name for p in TARBALLS])
+def test_store_from_another_zarr_opens_verifies_and_reads_exactly(tarball, tmp_path):
+    path, written_by = _extract(tarball, tmp_path)
+    print(f"store written by zarr {written_by['zarr']}, read by zarr {zarr.__version__}")
+    report = verify(path)
+    assert report.ok, str(report)
+    expected = FIX.expected_rows()
+    st = ZarrStorage(path, read_only=True)
+    assert len(st) == FIX.ROWS
+    got = st.get(torch.arange(FIX.ROWS))
+    for key in expected.keys(include_nested=True, leaves_only=True):
+        assert torch.equal(got[key], expected[key].to(got[key].dtype)), key
+    view = st.view()
+    assert view["run"][: FIX.ROWS].unique().tolist() == [0, 1]  # the fixture's two runs
+    assert view["episode"][FIX.ROWS - 1] > view["episode"][0]
+    rb = TensorDictReplayBuffer(storage=st, batch_size=8)
+    assert rb.sample()["observation"].shape == (8, 25)
+    index = GoalIndex(st)
+    hit = index.recall(expected["next", "achieved_goal"][42], k=1, success_only=False)
+    assert torch.equal(hit["next", "achieved_goal"][0], expected["next", "achieved_goal"][42])
+    st.close()
+
+
+@pytest.mark.parametrize("tarball", TARBALLS, ids=[p.name for p in TARBALLS])
+def test_store_from_another_zarr_takes_new_rows(tarball, tmp_path):
+    path, _ = _extract(tarball, tmp_path)
+    extra = FIX.expected_rows()[:20]
+    st = ZarrStorage(path, env=FIX.ENV, background=False)
+    st.set(torch.arange(FIX.ROWS, FIX.ROWS + 20), extra)
+    st.close()
+    assert verify(path).ok
+    st = ZarrStorage(path, read_only=True)
+    assert len(st) == FIX.ROWS + 20
+    tail = st.get(torch.arange(FIX.ROWS, FIX.ROWS + 20))
+    assert torch.equal(tail["observation"], extra["observation"])
+    assert isinstance(tail, TensorDict)
+    st.close()
