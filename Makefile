@@ -29,7 +29,7 @@ demo: install
 
 # two pytest workers (pytest-xdist): most tests wait on subprocesses, so two
 # workers on two cores take ~0.8x the wall time of one. PYTEST_ARGS="-n 0": serial.
-PYTEST_ARGS ?= -n 2
+PYTEST_ARGS ?= -n 2 --durations=25
 test: install
 	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools
 	$(PY) -m pytest -q $(PYTEST_ARGS)
