@@ -284,6 +284,7 @@ def small_memory(sources, tmp_path):
     return path
 
 
+@pytest.mark.filterwarnings("ignore:Duplicate name")  # a zip store rewrites its zarr.json
 def test_copy_local_and_refusals(small_memory, tmp_path, capsys):
     dst = tmp_path / "sub" / "copy.zarr"
     capsys.readouterr()
@@ -300,6 +301,15 @@ def test_copy_local_and_refusals(small_memory, tmp_path, capsys):
     assert "exists; refusing to overwrite it" in capsys.readouterr().err
     assert sorted(p.name for p in dst.rglob("*")) == before
     assert main(["copy", str(tmp_path / "nothing.zarr"), str(tmp_path / "x.zarr")]) == 2
+    assert main(["copy", str(small_memory), str(small_memory / "inside.zarr")]) == 2
+    assert "inside it" in capsys.readouterr().err
+    # a single-file (*.zip) memory: copied byte for byte
+    rows = ZarrStorage(small_memory, read_only=True)[:]
+    with ZarrStorage(tmp_path / "z.zip", 100, env=ENV) as z:
+        z.set(slice(0, 60), rows.exclude("episode", "run", "env"))
+    assert main(["copy", str(tmp_path / "z.zip"), str(tmp_path / "z2.zip")]) == 0
+    assert "the same bytes as the source" in capsys.readouterr().out
+    assert (tmp_path / "z.zip").read_bytes() == (tmp_path / "z2.zip").read_bytes()
     assert not (tmp_path / "x.zarr").exists()
     # import of a memory says to copy it
     assert main(["import", str(small_memory), str(tmp_path / "new.zarr")]) == 2
