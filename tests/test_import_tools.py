@@ -34,6 +34,14 @@ def _fetch_env(max_steps: int):
     return gym.make(ENV, max_episode_steps=max_steps)
 
 
+def _act(env, obs, episode: int) -> np.ndarray:
+    """Odd episodes: a random action; even ones: straight for the goal (so that some rows succeed)."""
+    if episode % 2:
+        return env.action_space.sample()
+    step = np.clip((obs["desired_goal"] - obs["achieved_goal"]) * 10.0, -1.0, 1.0)
+    return np.append(step, 0.0).astype(np.float32)
+
+
 def _sac_buffer(path, *, n_envs: int, her: bool, buffer_size: int, steps: int = 300):
     """Runs SAC for ``steps`` env steps on FetchReach-v4 and saves its replay buffer to ``path``; returns it."""
     import torch
@@ -70,7 +78,7 @@ def sources(tmp_path_factory):
 
 
 def _minari_dataset(root) -> str:
-    """4 episodes of 20 random FetchReach steps written by ``minari.create_dataset_from_buffers``; its directory.
+    """4 episodes of 20 FetchReach steps written by ``minari.create_dataset_from_buffers``; its directory.
 
     Minari's ``DataCollector`` needs jax (``minari[create]``), which the test environment lacks; the buffers
     are filled the way it fills them (``T + 1`` observations and infos, ``T`` actions, rewards and flags)
@@ -90,7 +98,7 @@ def _minari_dataset(root) -> str:
             obs, info = env.reset(seed=ep)
             steps = {"obs": [obs], "success": [info.get("is_success", 0.0)], "a": [], "r": [], "te": [], "tr": []}
             while True:
-                action = env.action_space.sample()
+                action = _act(env, obs, ep)
                 obs, reward, terminated, truncated, info = env.step(action)
                 for k, v in (("obs", obs), ("success", info["is_success"]), ("a", action), ("r", reward),
                              ("te", terminated), ("tr", truncated)):
@@ -115,7 +123,7 @@ def _minari_dataset(root) -> str:
 
 
 def _plain_npz(path):
-    """3 episodes of 20 random FetchReach steps saved with ``np.savez`` in the documented plain layout (float64)."""
+    """3 episodes of 20 FetchReach steps saved with ``np.savez`` in the documented plain layout (float64)."""
     env = _fetch_env(20)
     env.action_space.seed(1)
     cols = {k: [] for k in ("observation", "next_observation", "achieved_goal", "next_achieved_goal", "desired_goal",
@@ -123,7 +131,7 @@ def _plain_npz(path):
     for ep in range(3):
         obs, _ = env.reset(seed=10 + ep)
         while True:
-            action = env.action_space.sample()
+            action = _act(env, obs, ep)
             nxt, reward, terminated, truncated, info = env.step(action)
             for k, v in (("observation", obs["observation"]), ("next_observation", nxt["observation"]),
                          ("achieved_goal", obs["achieved_goal"]), ("next_achieved_goal", nxt["achieved_goal"]),
@@ -209,6 +217,8 @@ def test_sb3_wrapped_ring_is_read_oldest_first(sources, tmp_path, capsys):
     st = ZarrStorage(target, read_only=True)
     np.testing.assert_array_equal(st["observation"][0].numpy(),
                                   buf.observations["observation"][buf.pos, 0].astype(np.float32))
+    success, reward = st["next", "is_success"].numpy(), st["next", "reward"][:, 0].numpy()
+    assert success.sum() > 0 and np.array_equal(success, (reward == 0).astype(np.float32))
     st.close()
     _continuous(target)
 
@@ -223,7 +233,8 @@ def test_minari_dataset_from_its_data_collector(sources, tmp_path, capsys):
     assert "float64 stored as float32" in out and "observation" in out
     st = ZarrStorage(target, read_only=True)
     assert {str(st[k].dtype) for k in ("observation", "desired_goal", ("next", "achieved_goal"))} == {"torch.float32"}
-    assert ("next", "is_success") in st[:1].keys(True, True)
+    success, reward = st["next", "is_success"].numpy(), st["next", "reward"][:, 0].numpy()
+    assert success.sum() > 0 and np.array_equal(success, (reward == 0).astype(np.float32))
     st.close()
     assert [len(r) for r in _episodes(target)] == [20] * 4
     _continuous(target)
@@ -236,6 +247,7 @@ def test_plain_npz_and_float64(sources, tmp_path, capsys):
     assert "float64 stored as float32 (--keep-float64 keeps it): achieved_goal, desired_goal, " in out
     st = ZarrStorage(target, read_only=True)
     np.testing.assert_array_equal(st["next", "is_success"].numpy(), sources["npz_success"].astype(np.float32))
+    assert sources["npz_success"].sum() > 0
     assert str(st["observation"].dtype) == "torch.float32" and st["next", "truncated"].sum().item() == 3
     st.close()
     _continuous(target)
