@@ -5,7 +5,9 @@ The file holds one array per stored key (nested keys joined with ``/``, e.g.
 ``episode`` / ``run`` / ``env`` among them, and ``__robotmem__``: a 0-d string
 array holding JSON (env names, data kind, ``ndim``, ``max_size``, ``rows``).
 Nothing is pickled. ``import`` restores every column and tag, so
-npz -> memory -> npz is bit-exact. Both build their output beside the target
+npz -> memory -> npz is bit-exact (float64 columns: with ``keep_float64``;
+by default they are stored as float32). A file without ``__robotmem__`` is
+read as a plain npz of transitions (:mod:`.plain_npz`). Both build their output beside the target
 and rename it into place (:mod:`._build`); a truncated or damaged file is one
 :class:`~torchrl_robotmem.cli.CLIError` naming it, and nothing is created.
 """
