@@ -226,7 +226,7 @@ def test_sb3_wrapped_ring_is_read_oldest_first(sources, tmp_path, capsys):
 # -- Minari, plain npz, float64 ------------------------------------------------------------------------
 
 
-def test_minari_dataset_from_its_data_collector(sources, tmp_path, capsys):
+def test_minari_dataset_of_fetch_episodes(sources, tmp_path, capsys):
     target = tmp_path / "minari.zarr"
     rc, out, _ = _import(capsys, sources["minari"], target, "--env", ENV)
     assert rc == 0 and "imported 80 rows (4 episodes)" in out, out
