@@ -3,7 +3,7 @@
 * Stable-Baselines3: a ``HerReplayBuffer`` (2 envs) and a ``DictReplayBuffer``
   whose ring wrapped, saved by short real SAC runs on FetchReach-v4 with
   ``model.save_replay_buffer``;
-* Minari: a dataset of FetchReach episodes written by ``minari.create_dataset_from_buffers``;
+* Minari: a dataset of FetchReach episodes recorded by Minari's own ``DataCollector``;
 * a plain ``.npz`` of transitions from a gymnasium rollout (no ``__robotmem__``);
 * float64 -> float32 by default, ``--keep-float64``;
 * ``robotmem copy`` local -> local, local -> ``s3://`` -> local (a moto server), refusals;
@@ -77,43 +77,46 @@ def sources(tmp_path_factory):
     return out
 
 
+def _success_at_reset(env):
+    """``env`` with ``is_success`` in its reset info too: ``DataCollector(record_infos=True)`` needs the same info keys
+    at reset as at every step, and gymnasium-robotics' reset info is empty (Minari raises on the mismatch)."""
+    import gymnasium as gym
+
+    class SuccessAtReset(gym.Wrapper):
+        def reset(self, **kwargs):
+            obs, info = self.env.reset(**kwargs)
+            hit = self.env.unwrapped.compute_reward(obs["achieved_goal"], obs["desired_goal"], info) == 0
+            return obs, {**info, "is_success": np.float64(hit)}
+
+    return SuccessAtReset(env)
+
+
 def _minari_dataset(root) -> str:
-    """4 episodes of 20 FetchReach steps written by ``minari.create_dataset_from_buffers``; its directory.
+    """4 episodes of 20 FetchReach steps recorded by Minari's own ``DataCollector``; the dataset's directory.
 
-    Minari's ``DataCollector`` needs jax (``minari[create]``), which the test environment lacks; the buffers
-    are filled the way it fills them (``T + 1`` observations and infos, ``T`` actions, rewards and flags)
-    and Minari writes the dataset, with the env's spec and spaces.
+    ``DataCollector`` (``minari[create]``, which needs jax: in the ``dev`` extra) wraps the env, records every
+    step with its infos (``is_success`` among them) and ``create_dataset`` writes the dataset with the env's
+    spec and spaces, as a Minari user records one.
     """
-    from minari.data_collector.episode_buffer import EpisodeBuffer
-
     old = os.environ.get("MINARI_DATASETS_PATH")
     os.environ["MINARI_DATASETS_PATH"] = str(root)
     try:
         import minari
+        from minari import DataCollector
 
-        env = _fetch_env(20)
+        env = DataCollector(_success_at_reset(_fetch_env(20)), record_infos=True)
         env.action_space.seed(0)
-        buffers = []
         for ep in range(4):
-            obs, info = env.reset(seed=ep)
-            steps = {"obs": [obs], "success": [info.get("is_success", 0.0)], "a": [], "r": [], "te": [], "tr": []}
+            obs, _ = env.reset(seed=ep)
             while True:
-                action = _act(env, obs, ep)
-                obs, reward, terminated, truncated, info = env.step(action)
-                for k, v in (("obs", obs), ("success", info["is_success"]), ("a", action), ("r", reward),
-                             ("te", terminated), ("tr", truncated)):
-                    steps[k].append(v)
+                obs, _, terminated, truncated, _ = env.step(_act(env, obs, ep))
                 if terminated or truncated:
                     break
-            buffers.append(EpisodeBuffer(
-                id=ep, seed=ep, observations={k: np.stack([o[k] for o in steps["obs"]]) for k in obs},
-                actions=np.stack(steps["a"]), rewards=np.asarray(steps["r"]), terminations=np.asarray(steps["te"]),
-                truncations=np.asarray(steps["tr"]), infos={"is_success": np.asarray(steps["success"])}))
-        minari.create_dataset_from_buffers("fetchreach/random-v0", buffers, env=env, algorithm_name="random",
-                                           description="random FetchReach-v4 steps", eval_env=ENV,
-                                           author="test", author_email="test@example.com",
-                                           code_permalink="tests/test_import_tools.py")
+        env.create_dataset("fetchreach/random-v0", algorithm_name="random", description="random FetchReach-v4 steps",
+                           eval_env=ENV, author="test", author_email="test@example.com",
+                           code_permalink="tests/test_import_tools.py")
         env.close()
+        assert minari.list_local_datasets()  # written where MINARI_DATASETS_PATH points
     finally:
         if old is None:
             os.environ.pop("MINARI_DATASETS_PATH")
