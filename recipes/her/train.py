@@ -304,7 +304,7 @@ def pretrain_on_memory(cfg: DictConfig, step, full_eval, actor_fixed: bool, cpu:
     mem = cfg.memory
     episodes = min(mem.pretrain_eval_episodes or cfg.logger.eval_episodes, cfg.logger.eval_episodes)
     target = mem.pretrain_target if mem.pretrain_target is not None else cfg.logger.target_success
-    small = episodes < cfg.logger.eval_episodes
+    small = episodes < cfg.logger.eval_episodes and mem.pretrain_eval_every > 0  # 0: one look, the full one
     with cpu.evaluating():
         check_env = make_eval_env(cfg, episodes, memory) if small else None
 

@@ -70,7 +70,10 @@ RENAMED = {
     "optim.actor_lr": "prior.actor_lr",
 }
 #: new keys with no old key: the value the old recipe used (a hard-coded line), or None: not read by the loop
-NEW_ONLY = {"num_threads": 1, "prior.name": None}
+# None: not compared. The pretraining checks of issue 25 decide when pretraining stops, not what it
+# trains; memory.pretrain_eval_every=0 (prior_runs) does every update, as the old recipe did
+NEW_ONLY = {"num_threads": 1, "prior.name": None, "memory.pretrain_eval_every": None,
+            "memory.pretrain_eval_episodes": None, "memory.pretrain_target": None, "memory.pretrain_patience": None}
 OLD_TOOLS = {"train.py", "prior_runs.py", "compare.py", "failures.py", "clone_sensitivity.py"}
 COMMAND = re.compile(r"(?:python3?|\$\(PY\)|\.venv/bin/python)\s+(?:-m\s+recipes\.her\.(?:tools\.)?(\w+)|recipes/her/(?:tools/)?(\w+)\.py)")
 
