@@ -483,6 +483,12 @@ def test_memory_url_and_zip_store(tmp_path, transitions):
     with ZarrStorage(zpath, read_only=True) as s:
         assert len(s) == 12
         assert torch.equal(s["action"][:12], transitions(12)["action"])
+    # the integrity check reads keys before any group is opened: the zip store is opened for it (it used to raise
+    # AttributeError: 'ZipStore' object has no attribute '_lock')
+    from torchrl_robotmem.storage.integrity import verify
+
+    report = verify(zpath)
+    assert report.ok, str(report)
 
 
 def test_summary(tmp_path, transitions):

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec, ZstdCodec
+from zarr.core.sync import sync
 
 from .errors import IntegrityError, Problem
 from .format import FORMAT_MARKER, FORMAT_VERSION  # noqa: F401 - re-exported: the format lives in .format
@@ -164,7 +165,8 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
 
         if read_only and not os.path.exists(spath):
             raise FileNotFoundError(f"No Zarr zip store at {spath!r}.")
-        return ZipStore(spath, mode="r" if read_only else "a"), None
+        # opened here (Store.open), not lazily by the first open_group: integrity checks read keys first
+        return sync(ZipStore.open(spath, mode="r" if read_only else "a")), None
     if is_url(spath):
         from zarr.storage import FsspecStore
 
