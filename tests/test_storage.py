@@ -388,8 +388,11 @@ def test_prioritized_buffer(tmp_path, transitions):
     with ZarrStorage(tmp_path / "b.zarr", 100) as s:
         rb = TensorDictPrioritizedReplayBuffer(alpha=0.7, beta=0.5, storage=s, batch_size=16)
         rb.extend(transitions(50))
-        batch = rb.sample()
-        batch.set("td_error", torch.where(batch["index"] == 3, 100.0, 1e-4))
+        # every row gets a priority (rows left out of an update keep the initial one): row 3 carries ~1e8 times the
+        # others' probability, so a batch of 16 is row 3 but for a ~1e-6 chance, by construction
+        index = torch.arange(50)
+        batch = rb.storage.get(index).set("index", index)
+        batch.set("td_error", torch.where(index == 3, 1e4, 1e-8))
         rb.update_tensordict_priority(batch)
         assert (rb.sample()["index"] == 3).float().mean() > 0.5
 

@@ -250,14 +250,15 @@ class CommitEngine:
             self._commit(everything=True)
             return
         with self.cv:
-            if self.thread is None:
-                self._start_thread()
-            elif notify:
+            started = self.thread is not None or self._start_thread()
+            if self.thread is not None and notify:
                 self.cv.notify_all()
+        if not started:  # no new thread at interpreter exit (see start_thread): this one commits
+            self._commit(everything=True)
 
-    def _start_thread(self) -> None:
-        self.thread = threading.Thread(target=self._loop, name=f"ZarrStorage-writer({self.name})", daemon=True)
-        self.thread.start()
+    def _start_thread(self) -> bool:
+        self.thread = start_thread(self._loop, f"ZarrStorage-writer({self.name})")
+        return self.thread is not None
 
     def _complete_chunks(self) -> list[int]:
         mirror = self.mirror
@@ -396,15 +397,11 @@ class CommitEngine:
         """Writes chunks of every array in one event-loop round trip (about 1.4x a loop of writes)."""
         write_chunks(self._array, payload, self.mirror.chunk_rows, prefix)
 
-    # -- journal ------------------------------------------------------------------
-
     def _write_journal(self, payload: dict[int, dict[str, np.ndarray]], meta: dict) -> None:
         """Redo log for chunks that overwrite committed rows (ring wrap-around): see :mod:`.journal`."""
         m = self.mirror
         write_journal(self.group, self.arrays, payload, meta, schema=m.schema, size=m.max_dim0,
                       inner_shape=m.inner_shape, chunk_rows=m.chunk_rows, write_chunks=self._write_chunks)
-
-    # -- durability ---------------------------------------------------------------
 
     def pending(self) -> bool:
         return bool(self.dirty or self.meta_dirty or self.inflight) or self.flush_done < self.flush_req
@@ -431,11 +428,14 @@ class CommitEngine:
             self.flush_req += 1
             target = self.flush_req
         self.kick()
-        with self.cv:
-            while self.flush_done < target and self.error is None:
-                if self.thread is None:  # it went idle before seeing the request
-                    self._start_thread()
-                self.cv.wait(0.5)
+        while True:
+            with self.cv:
+                if self.flush_done >= target or self.error is not None:
+                    break
+                if self.thread is not None or self._start_thread():  # it may have gone idle before the request
+                    self.cv.wait(0.5)
+                    continue
+            self._commit(everything=True)  # no new thread at interpreter exit: this one commits
         self.raise_error()
 
     def not_durable(self) -> str:
@@ -474,6 +474,22 @@ def worker_header(mirror: Any, path: str, snapshots: dict, meta: dict | None, ov
             for p, spec in mirror.schema.items()
         ]
     return header
+
+
+def start_thread(target: Any, name: str) -> threading.Thread | None:
+    """Starts a daemon thread; ``None`` where the interpreter starts no new thread.
+
+    Python 3.12.0 to 3.12.2 refuse to start a thread once interpreter exit has
+    begun, even in the threading exit hooks that flush writers
+    (CPython gh-113964, fixed in 3.12.3): a flush at exit then commits in the
+    calling thread instead.
+    """
+    thread = threading.Thread(target=target, name=name, daemon=True)
+    try:
+        thread.start()
+    except RuntimeError:  # "can't create new thread at interpreter shutdown"
+        return None
+    return thread
 
 
 def not_durable(mirror: Any, written: int, committed: int, in_place: list[int]) -> str:

@@ -27,6 +27,7 @@ Set ``TORCHRL_ROBOTMEM_SIGNALS=0`` to leave the process's signal handlers alone
 from __future__ import annotations
 
 import atexit
+import concurrent.futures
 import concurrent.futures.thread  # noqa: F401  (see the module docstring: hook order)
 import os
 import signal
@@ -73,7 +74,41 @@ def flush_all_writers() -> list[tuple[str, BaseException]]:
     return failures
 
 
+# CPython 3.12.0 to 3.12.2 start no thread once interpreter exit has begun, not even in the threading exit hook
+# that flushes the writers (gh-113964, fixed in 3.12.3): the last commits are made without new threads.
+_NO_NEW_THREADS_AT_EXIT = (3, 12, 0) <= sys.version_info[:3] < (3, 12, 3)
+
+
+class _InlineExecutor(concurrent.futures.ThreadPoolExecutor):
+    """Runs each call in the thread that submits it: an executor that never starts a thread."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        future = concurrent.futures.Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as err:  # noqa: BLE001 - handed to the awaiting coroutine
+            future.set_exception(err)
+        return future
+
+
+def _zarr_io_without_new_threads() -> None:
+    """Zarr's event loop runs its blocking file I/O itself from now on, not in a thread pool that would grow."""
+    import asyncio
+
+    from zarr.core.sync import sync
+
+    async def swap() -> None:
+        asyncio.get_running_loop().set_default_executor(_InlineExecutor(max_workers=1))
+
+    try:
+        sync(swap())
+    except Exception as err:  # noqa: BLE001 - the commits below report what they cannot write
+        _warn(f"could not keep Zarr's I/O in its event loop at exit: {type(err).__name__}: {err}")
+
+
 def _close_all_at_exit() -> None:
+    if _NO_NEW_THREADS_AT_EXIT and len(_WRITERS):
+        _zarr_io_without_new_threads()
     for storage in list(_WRITERS):
         try:
             storage.close()
