@@ -185,6 +185,9 @@ def finish_run(cfg: DictConfig, history: list[dict], history_path: str, summary:
             f"the first run on this memory needed {first} frames to reach {target}; "
             f"this one {reached_at}: {first - reached_at} fewer"
         )
+        first_cpu, cpu = earlier[0].get("process_cpu_s"), summary.get("process_cpu_s")
+        if first_cpu is not None and cpu is not None:
+            print(f"CPU-s (whole process): first run {first_cpu:.1f}, this one {cpu:.1f}")
 
 
 def cost_line(summary: dict, target: float | None = None) -> str:
