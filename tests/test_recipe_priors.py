@@ -13,20 +13,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_recipes import TINY  # the tiny budget every recipe test runs with
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE_DIR = ROOT / "recipes" / "her"
-TINY = [
-    "collector.total_frames=50",
-    "collector.init_random_frames=25",
-    "collector.frames_per_batch=25",
-    "optim.batch_size=8",
-    "network.hidden_sizes=[16,16]",
-    "memory.pretrain_updates=3",
-    "logger.eval_iter=50",
-    "logger.eval_episodes=1",
-    "logger.plot=false",
-]
 
 
 def recipe(tmp_path: Path, *overrides: str, out: str = "out") -> subprocess.CompletedProcess:
