@@ -486,3 +486,20 @@ def test_exports_build_beside_their_target_and_remove_the_builds_of_killed_comma
         assert summarize(str(out / "m.zarr"))["rows"] == summarize(str(out / "back.zarr"))["rows"] == 78
     finally:
         alive.communicate(b"")
+
+
+def test_a_missing_optional_dependency_names_its_extra(tmp_path, capsys, monkeypatch):
+    """`pip install torchrl_robotmem` has no matplotlib or minari: their commands say which extra installs them."""
+    path = tmp_path / "m.zarr"
+    with ZarrStorage(path, 100, env="FetchPush-v4") as s:
+        TensorDictReplayBuffer(storage=s, batch_size=4).extend(make_transitions(20))
+    # a module set to None in sys.modules is one Python cannot import (ModuleNotFoundError), as when not installed
+    for name in ("matplotlib", "matplotlib.pyplot", "minari", "minari.data_collector",
+                 "minari.data_collector.episode_buffer"):
+        monkeypatch.setitem(sys.modules, name, None)
+    assert main(["plot", str(path), "--out", str(tmp_path / "plots")]) == 2
+    assert "pip install 'torchrl_robotmem[plots]'" in capsys.readouterr().err
+    assert main(["export", str(path), str(tmp_path / "ds" / "fetch-v0")]) == 1
+    err = capsys.readouterr().err
+    assert "needs minari" in err and "pip install 'torchrl_robotmem[minari]'" in err
+    assert not (tmp_path / "ds" / "fetch-v0").exists() and not (tmp_path / "plots").exists()

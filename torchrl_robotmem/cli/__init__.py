@@ -61,6 +61,11 @@ class CLIError(Exception):
         self.code = code
 
 
+# optional dependencies a command may need, and the extra (pyproject.toml) that installs each
+EXTRAS = {"matplotlib": "plots", "minari": "minari", "h5py": "minari", "jax": "minari", "s3fs": "s3",
+          "stable_baselines3": "sb3"}
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``robotmem`` argument parser with one sub-command per :data:`COMMANDS` entry."""
     parser = argparse.ArgumentParser(
@@ -106,6 +111,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CLIError as e:
         print(f"robotmem {args.command}: error: {e}", file=sys.stderr)
         return e.code
+    except ModuleNotFoundError as e:
+        extra = EXTRAS.get((e.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(f"robotmem {args.command}: error: this needs {e.name}, an optional dependency: "
+              f"pip install 'torchrl_robotmem[{extra}]'", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"robotmem {args.command}: interrupted", file=sys.stderr)
         return 130

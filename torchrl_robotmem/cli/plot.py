@@ -231,6 +231,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if (args.window is not None and args.window < 1) or args.max_points < 1:
         raise CLIError(f"--window and --max-points must be >= 1, got {args.window} and {args.max_points}")
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as err:
+        raise CLIError(f"robotmem plot needs matplotlib ({err}): pip install 'torchrl_robotmem[plots]'") from err
     for path in plot_memory(args.path, args.out, window=args.window, max_points=args.max_points):
         print(path)
     return 0
