@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from . import _backend, integrity
-from .format import FORMAT_MARKER, writing_config
+from .format import FORMAT_MARKER, is_strict, writing_config
 from .journal import replay_journal
 
 __all__ = ["check_arguments", "grow_arrays", "load_rows", "open_record", "pending_record", "reopen_record", "snapshot", "use_worker"]
@@ -168,7 +168,9 @@ def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> i
 
     ``record`` is the record as opened (before a pending journal); a reader applies
     that journal and re-reads chunks a writer overwrote meanwhile. The chunk
-    files are listed again after the read (:meth:`StoreHandle.check_read <.handle.StoreHandle.check_read>`).
+    files of the arrays read through Zarr (a missing file reads as zeros there) are
+    listed again after the read (:meth:`StoreHandle.check_read <.handle.StoreHandle.check_read>`);
+    those read from their files (:mod:`.fast_read`) need no listing.
 
     Args:
         handle (StoreHandle): the store's handle.
@@ -183,15 +185,18 @@ def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> i
     read_only = handle.read_only
     n = int(attrs.get("len", 0))
     n0 = mirror.dim0(n)
-    mirror.load(handle.group, n0, store_path=handle.path, read_only=read_only)
+    left = mirror.load(handle.group, n0, store_path=handle.path, read_only=read_only, local_dir=handle.local_dir)
     if journal and read_only:
         mirror.apply_journal(handle.group, journal)
-    if read_only and n0:
-        mirror.reread_overwritten(handle.store, handle.group, record, n0, store_path=handle.path)
-    if n0:
+    reread = bool(read_only and n0 and mirror.reread_overwritten(handle.store, handle.group, record, n0,
+                                                                  store_path=handle.path))
+    if n0 and (left or reread):
         # Zarr reads a chunk file that is gone as zeros: one moved away since the open's
-        # listing (by `robotmem repair`) is an error here, never zero rows served
+        # listing (by `robotmem repair`) is an error here, never zero rows served. The
+        # arrays read from their chunk files (fast_read) need no listing: each file was read.
         listed = attrs if not read_only else {**record, "len": min(n, int(record.get("len", 0)))}
+        if not reread and is_strict(listed):
+            listed = {**listed, "schema": {p: spec for p, spec in listed["schema"].items() if p in left}}
         n = handle.check_read(listed, n, on_damage=on_damage, inner_numel=mirror.inner_numel)
     return n
 

@@ -34,6 +34,7 @@ import torch
 from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 
 from . import _backend
+from .fast_read import read_into
 from .format import read_rows
 from .journal import PREFIX, journal_chunks
 from .schema import PackedLayout
@@ -207,20 +208,29 @@ class RamMirror:
 
     # -- loading ---------------------------------------------------------------------
 
-    def load(self, group: Any, n0: int, *, store_path: Any, read_only: bool) -> None:
-        """Reads the first ``n0`` rows of every array of ``group`` (a damaged chunk raises, naming it)."""
+    def load(self, group: Any, n0: int, *, store_path: Any, read_only: bool, local_dir: Any = None) -> set[str]:
+        """Reads the first ``n0`` rows of every array of ``group`` (a damaged chunk raises, naming it).
+
+        A local store's chunk files are read straight into the packed rows, in parallel
+        (:func:`~.fast_read.read_into`); the rest through Zarr. Returns the paths read
+        through Zarr (whose chunk files the caller lists again: Zarr reads a missing one as zeros).
+        """
         if not n0:
-            return
+            return set()
+        arrays = {path: group[path] for path in self.schema}
+        left = read_into(arrays, {path: self.column(path) for path in arrays}, n0, self.chunk_rows, local_dir=local_dir)
         for path in self.schema:
-            self.column(path)[:n0] = torch.from_numpy(
-                read_rows(group[path], path, n0, self.chunk_rows, store_path, read_only))
+            if path in left:
+                self.column(path)[:n0] = torch.from_numpy(
+                    read_rows(arrays[path], path, n0, self.chunk_rows, store_path, read_only))
+        return left
 
     def apply_journal(self, group: Any, journal: dict) -> None:
         """A reader applies a pending journal in RAM only."""
         for path, rows, values in journal_chunks(group, journal):
             self.column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
 
-    def reread_overwritten(self, store: Any, group: Any, record: dict, n0: int, *, store_path: Any) -> None:
+    def reread_overwritten(self, store: Any, group: Any, record: dict, n0: int, *, store_path: Any) -> bool:
         """Reads again, chunk by chunk, the rows a writer may have overwritten during a reader's load.
 
         An overwrite (a ring wrapping around, a journalled in-place write)
@@ -229,6 +239,7 @@ class RamMirror:
         changed during the load and an overwrite was possible, each chunk is read
         until the record is the same before and after (from the journal while
         one names the chunk): every row is whole, possibly newer than ``len``.
+        Returns whether it read anything.
         """
         def now() -> dict:
             return _backend.open_group(store, read_only=True).attrs.asdict()
@@ -236,7 +247,7 @@ class RamMirror:
         after = now()
         wrapped = int(after.get("write_count", 0)) > self.max_size
         if after == record or not (wrapped or record.get("journal") or after.get("journal")):
-            return
+            return False
         rows = self.chunk_rows
         for lo in range(0, n0, rows):
             hi = min(lo + rows, n0)
@@ -251,3 +262,4 @@ class RamMirror:
                 raise RuntimeError(f"Could not read rows {lo}..{hi} of {store_path!r}: the writer commits too often.")
             for path, v in values.items():
                 self.column(path)[lo:hi] = torch.from_numpy(np.ascontiguousarray(v))
+        return True

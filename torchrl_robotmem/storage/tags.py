@@ -211,7 +211,13 @@ def open_episode_ends(
         return torch.zeros(0, dtype=torch.long)
     rows = (run == run.max()).nonzero().squeeze(-1)
     order = (rows - cursor) % n if full else rows  # write order: a full ring starts at the cursor
-    _, inv = torch.unique(episode[rows], return_inverse=True)
+    ids = episode[rows]
+    lo, hi = int(ids.min()), int(ids.max())
+    if hi - lo <= 4 * ids.numel():  # ids dense enough to index by (no sort)
+        inv = ids - lo
+    else:
+        _, inv = torch.unique(ids, return_inverse=True)
     last = torch.full((int(inv.max()) + 1,), -1, dtype=torch.long).scatter_reduce(0, inv, order, reduce="amax")
+    last = last[last >= 0]  # ids between the stored ones that no row holds
     last_rows = (last + cursor) % n if full else last
     return last_rows[~done[last_rows]]

@@ -37,17 +37,27 @@ _LISTED = 8
 def list_keys(store: Any, local_dir: Any, prefix: str) -> set[str]:
     """Every key under ``prefix/`` (a directory walk for local stores, ``list_prefix`` otherwise)."""
     if local_dir is not None:
-        root = os.path.join(os.fspath(local_dir), prefix)
-        out = set()
-        for dirpath, _, files in os.walk(root):
-            rel = os.path.relpath(dirpath, os.fspath(local_dir)).replace(os.sep, "/")
-            out.update(f"{rel}/{f}" for f in files if not f.endswith(".partial"))
+        out: set[str] = set()
+        _walk(os.path.join(os.fspath(local_dir), prefix), prefix.strip("/"), out)
         return out
 
     async def _collect():
         return {k async for k in store.list_prefix(prefix + "/")}
 
     return zarr_sync(_collect())
+
+
+def _walk(directory: str, rel: str, out: set[str]) -> None:
+    """Adds ``rel/<name>`` for every file below ``directory`` (``*.partial`` left out) to ``out``."""
+    try:
+        entries = list(os.scandir(directory))
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    for entry in entries:
+        if entry.is_dir(follow_symlinks=False):
+            _walk(entry.path, f"{rel}/{entry.name}", out)
+        elif not entry.name.endswith(".partial"):
+            out.add(f"{rel}/{entry.name}")
 
 
 def present_chunks(arrays: dict, *, store: Any, local_dir: Any) -> dict[str, set[int]]:

@@ -1,0 +1,239 @@
+"""Reading a local store's chunk files straight into the RAM mirror, in parallel, checksums checked on the read.
+
+Opening a store reads every committed row. Zarr's own read of ``arr[:n]``
+decodes one array at a time through its event loop and hands back a
+contiguous copy, which the mirror then copies again into its packed rows. For
+the codec pipelines this library writes (``bytes``, then ``blosc`` or
+``zstd`` or nothing, then ``crc32c``) this module does the same decode itself:
+each chunk file is read once, its crc32c checked on the bytes read (the check
+Zarr makes), decompressed into a per-thread buffer and copied into the
+mirror's column. Chunks are spread over a thread pool by chunk index (the
+codecs and the copies release the GIL), so the packed rows of one chunk are
+filled while they are in cache.
+
+A chunk it cannot read exactly as Zarr would (a file that is gone, a checksum
+that does not match, a size or codec it does not know) is never guessed at:
+the array is reported back and read through Zarr, whose errors name the array
+and the chunk (:func:`~torchrl_robotmem.storage.format.read_rows`). Since every
+chunk read here came from its file, the read itself is the proof that no chunk
+file was missing: the listing after the read is needed only for the arrays read
+through Zarr.
+
+Example:
+    >>> import tempfile, torch, zarr
+    >>> from tensordict import TensorDict
+    >>> from torchrl_robotmem import ZarrStorage
+    >>> from torchrl_robotmem.storage.fast_read import read_into
+    >>> path = tempfile.mkdtemp() + "/memory.zarr"
+    >>> with ZarrStorage(path, 100, chunk_rows=4) as storage:
+    ...     storage.set(slice(0, 10), TensorDict({"obs": torch.arange(30.).reshape(10, 3)}, [10]))
+    >>> group = zarr.open_group(path, mode="r")
+    >>> out = torch.zeros(10, 3)
+    >>> read_into({"obs": group["obs"]}, {"obs": out}, 10, 4, local_dir=path)
+    set()
+    >>> out[9].tolist()
+    [27.0, 28.0, 29.0]
+"""
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import google_crc32c
+import numcodecs.blosc
+import numcodecs.zstd
+import numpy as np
+import torch
+from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, ZstdCodec
+
+__all__ = ["ChunkPlan", "plan_array", "read_into", "workers"]
+
+#: threads at most (more add nothing on a page-cached read of a few hundred chunks)
+MAX_WORKERS = 8
+
+
+class ChunkPlan:
+    """How to decode one array's row chunks: the file name pattern, the codecs, the chunk size.
+
+    Args:
+        arr (zarr.Array): the array (one chunk across every dimension but the rows).
+        path (str): its path in the store.
+        local_dir (str): the store's directory.
+
+    Raises ValueError when the array's codecs or chunking are not the ones this module decodes.
+
+    Example:
+        >>> import tempfile, torch, zarr
+        >>> from tensordict import TensorDict
+        >>> from torchrl_robotmem import ZarrStorage
+        >>> path = tempfile.mkdtemp() + "/memory.zarr"
+        >>> with ZarrStorage(path, 100, chunk_rows=4) as storage:
+        ...     storage.set(slice(0, 10), TensorDict({"obs": torch.ones(10, 3)}, [10]))
+        >>> plan = ChunkPlan(zarr.open_group(path, mode="r")["obs"], "obs", path)
+        >>> plan.nbytes, plan.codec, plan.checksum
+        (48, 'blosc', True)
+    """
+
+    def __init__(self, arr: Any, path: str, local_dir: str) -> None:
+        codecs = list(arr.metadata.codecs)
+        first = codecs.pop(0) if codecs else None
+        if not isinstance(first, BytesCodec) or not _little_endian(first, arr):
+            raise ValueError(f"{path}: codec pipeline {arr.metadata.codecs} starts with no little-endian 'bytes' codec")
+        self.checksum = bool(codecs) and isinstance(codecs[-1], Crc32cCodec)
+        if self.checksum:
+            codecs.pop()
+        self.codec = None
+        if codecs:
+            kind = {BloscCodec: "blosc", ZstdCodec: "zstd"}.get(type(codecs[0]))
+            if kind is None or len(codecs) > 1:
+                raise ValueError(f"{path}: codec pipeline {arr.metadata.codecs} is not one this module decodes")
+            self.codec = kind
+        chunks = tuple(arr.metadata.chunk_grid.chunk_shape)
+        if chunks[1:] != tuple(arr.shape[1:]):
+            raise ValueError(f"{path}: chunks {list(chunks)} split the rows' own dimensions")
+        self.dtype = np.dtype(arr.dtype)
+        self.chunk_shape = chunks
+        self.nbytes = int(np.prod(chunks)) * self.dtype.itemsize
+        probe = 987654321
+        key = arr.metadata.encode_chunk_key((probe, *([0] * (arr.ndim - 1))))
+        head, _, tail = os.path.join(os.fspath(local_dir), path, key).partition(str(probe))
+        self.head, self.tail = head, tail
+
+    def file(self, c: int) -> str:
+        """The file of row chunk ``c``."""
+        return f"{self.head}{c}{self.tail}"
+
+    def decode(self, raw: np.ndarray, scratch: np.ndarray) -> np.ndarray:
+        """Chunk ``raw`` (the file's bytes) checked and decoded: a ``chunk_shape`` array (in ``scratch`` where it can).
+
+        Raises ValueError on a checksum mismatch or a size other than the chunk's.
+        """
+        if self.checksum:
+            if raw.size < 4 or np.uint32(google_crc32c.value(raw[:-4])).tobytes() != raw[-4:].tobytes():
+                raise ValueError("Stored and computed checksum do not match")
+            raw = raw[:-4]
+        out = scratch[: self.nbytes]
+        if self.codec == "blosc":
+            size = int.from_bytes(raw[4:8].tobytes(), "little") if raw.size >= 16 else -1  # the header's nbytes
+            if size != self.nbytes:
+                raise ValueError(f"blosc chunk of {size} bytes, expected {self.nbytes}")
+            numcodecs.blosc.decompress(raw, out)
+        elif self.codec == "zstd":
+            data = numcodecs.zstd.decompress(raw)
+            if len(data) != self.nbytes:
+                raise ValueError(f"zstd chunk of {len(data)} bytes, expected {self.nbytes}")
+            out = np.frombuffer(data, np.uint8)
+        else:
+            if raw.size != self.nbytes:
+                raise ValueError(f"raw chunk of {raw.size} bytes, expected {self.nbytes}")
+            out = raw
+        return out.view(self.dtype).reshape(self.chunk_shape)
+
+
+def _little_endian(codec: BytesCodec, arr: Any) -> bool:
+    endian = getattr(codec.endian, "value", codec.endian)
+    return endian == "little" or (endian is None and np.dtype(arr.dtype).itemsize == 1)
+
+
+def plan_array(arr: Any, path: str, local_dir: Any) -> ChunkPlan | None:
+    """The :class:`ChunkPlan` of ``arr``, or ``None`` where Zarr must read it (another codec, a remote store)."""
+    if local_dir is None:
+        return None
+    try:
+        return ChunkPlan(arr, path, local_dir)
+    except (ValueError, AttributeError, TypeError):
+        return None
+
+
+def workers(tasks: int) -> int:
+    """Threads for ``tasks`` chunk reads: the CPUs this process may use, at most :data:`MAX_WORKERS`."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, MAX_WORKERS, tasks))
+
+
+def read_into(arrays: dict, columns: dict, n0: int, chunk_rows: int, *, local_dir: Any) -> set[str]:
+    """Reads rows ``[0, n0)`` of every array of ``arrays`` into ``columns``; returns the paths left for Zarr.
+
+    Args:
+        arrays (dict): ``{path: zarr.Array}``.
+        columns (dict): ``{path: CPU tensor}`` with at least ``n0`` rows of the array's row shape (views allowed).
+        n0 (int): rows to read along the first dimension.
+        chunk_rows (int): rows per chunk.
+
+    Keyword Args:
+        local_dir (str or None): the store's directory (``None``: every path is left for Zarr).
+
+    Returns:
+        The paths not read here (another codec, a chunk file missing or not as written): read
+        them through Zarr, and list their chunk files after the read.
+    """
+    todo, left = {}, set()
+    for p, arr in arrays.items():
+        plan, dest = plan_array(arr, p, local_dir), _numpy(columns[p])
+        if plan is None or dest is None or dest.dtype != plan.dtype or dest.shape[1:] != tuple(arr.shape[1:]):
+            left.add(p)
+        elif dest.size:
+            todo[p] = (plan, dest)
+    nchunks = -(-n0 // chunk_rows)
+    if not todo or not nchunks:
+        return left
+    failed: set[str] = set()
+    lock = threading.Lock()
+    local = threading.local()
+
+    def buffers() -> tuple[bytearray, np.ndarray]:
+        if not hasattr(local, "scratch"):
+            top = max(plan.nbytes for plan, _ in todo.values())
+            local.raw = np.empty(top + top // 8 + 4096, np.uint8)  # compressed data can outgrow its input a little
+            local.scratch = np.empty(top, np.uint8)
+        return local.raw, local.scratch
+
+    def chunk(c: int) -> None:
+        raw_buf, scratch = buffers()
+        lo, hi = c * chunk_rows, min((c + 1) * chunk_rows, n0)
+        for p, (plan, dest) in todo.items():
+            if p in failed:
+                continue
+            try:
+                raw = _read_file(plan.file(c), raw_buf)
+                np.copyto(dest[lo:hi], plan.decode(raw, scratch)[: hi - lo])
+            except (OSError, ValueError, RuntimeError):
+                with lock:
+                    failed.add(p)
+
+    n_workers = workers(nchunks)
+    if n_workers == 1:
+        for c in range(nchunks):
+            chunk(c)
+    else:
+        with ThreadPoolExecutor(n_workers, thread_name_prefix="robotmem-open") as pool:
+            list(pool.map(chunk, range(nchunks)))
+    return left | failed
+
+
+def _numpy(col: torch.Tensor) -> np.ndarray | None:
+    """A NumPy view of a CPU column, or ``None`` (another device, a dtype NumPy lacks)."""
+    if col.device.type != "cpu":
+        return None
+    try:
+        return col.numpy()
+    except (TypeError, RuntimeError):
+        return None
+
+
+def _read_file(name: str, buf: np.ndarray) -> np.ndarray:
+    """The bytes of file ``name`` (in ``buf`` when they fit)."""
+    with open(name, "rb", buffering=0) as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > buf.size:
+            buf = np.empty(size, np.uint8)
+        got = f.readinto(memoryview(buf)[:size])
+        if got != size:
+            raise OSError(f"{name}: read {got} of {size} bytes")
+        return buf[:size]
+
