@@ -328,7 +328,8 @@ class GoalRewardFn:
         desired_goal_key: NestedKey = "desired_goal",
         **gym_kwargs: Any,
     ) -> None:
-        self.env_id, _ = _resolve(env_id)
+        self.env_id, family = _resolve(env_id)
+        self.distance_based = family in ("fetch", "hand_reach")  # compute_reward is a norm against a threshold
         self.achieved_goal_key = achieved_goal_key
         self.desired_goal_key = desired_goal_key
         self.gym_kwargs = gym_kwargs
@@ -336,9 +337,43 @@ class GoalRewardFn:
         self._rowwise = False
 
     def __call__(self, td: TensorDictBase) -> torch.Tensor:
-        """Returns the float32 reward, shape ``(*B, 1)``."""
+        """Returns the float32 reward, shape ``(*B, 1)``.
+
+        Goals on an accelerator (a CUDA memory) of a Fetch or HandReach task are
+        rewarded where they are (:meth:`torch_reward`): no copy to the host and
+        back on every HER sample. On the CPU the env's own ``compute_reward`` is
+        called.
+        """
+        if self.distance_based and td.get(self.achieved_goal_key).device.type != "cpu":
+            return self.torch_reward(td).unsqueeze(-1)
         env = self._unwrapped()
         return self._evaluate(td, lambda a, g: env.compute_reward(a, g, None)).unsqueeze(-1)
+
+    def torch_reward(self, td: TensorDictBase) -> torch.Tensor:
+        """The env's ``compute_reward`` in torch, on the goals' device: float32, shape ``(*B,)``.
+
+        Fetch and HandReach only (their reward is the goal distance, or minus one
+        beyond ``distance_threshold``), in float64 as the env computes it. It
+        agrees with the env's reward except for distances within float64
+        rounding of the threshold.
+
+        Example:
+            >>> import torch
+            >>> from torchrl_robotmem.envs import GoalRewardFn, make_env
+            >>> td = make_env("FetchReach-v4", seed=0).rollout(10)
+            >>> fn = GoalRewardFn("FetchReach-v4")
+            >>> torch.equal(fn.torch_reward(td), td["next", "reward"].squeeze(-1))
+            True
+        """
+        if not self.distance_based:
+            raise ValueError(f"torch_reward covers Fetch and HandReach goals; {self.env_id} compares rotations: "
+                             "call the reward function itself (it uses the env's compute_reward).")
+        env = self._unwrapped()
+        achieved, desired = td.get(self.achieved_goal_key), td.get(self.desired_goal_key)
+        distance = torch.linalg.vector_norm(achieved.double() - desired.double(), dim=-1)
+        if env.reward_type == "sparse":
+            return -(distance > env.distance_threshold).float()
+        return (-distance).float()
 
     def success(self, td: TensorDictBase) -> torch.Tensor:
         """Returns ``is_success`` (float32 ``0./1.``, shape ``(*B,)``, like the env's)."""

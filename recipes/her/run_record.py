@@ -178,6 +178,9 @@ def finish_run(cfg: DictConfig, history: list[dict], history_path: str, summary:
     )
     if clock is not None:
         print(cost_line(summary, target))
+    if summary.get("frames_per_s"):
+        print(f"training loop: {summary['frames_per_s']:.1f} frames/s over {summary['loop_wall_s']:.1f} s "
+              "(collection, memory and updates; evaluation excluded)")
     earlier = [run for run in history if run.get("frames_to_target") is not None]
     if reached_at is not None and earlier:
         first = earlier[0]["frames_to_target"]

@@ -36,6 +36,9 @@ evaluation and the rest), printed and kept in its summary.
 """
 from __future__ import annotations
 
+import functools
+import time
+
 import hydra
 import numpy as np
 import torch
@@ -45,11 +48,13 @@ from omegaconf import DictConfig
 from pretrain import pretrain
 from prior_memory import check_prior_config, check_prior_memories, make_prior_mix, make_prior_terms, step_schedules
 from run_record import CpuClock, finish_run, first_reach, read_history, recover_checkpoint, run_progress
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.checkpoint import Checkpoint
+from update import Updater, compile_settings, draw_batches
 from utils import (
     RECALL_KEYS,
     GoalNormalizer,
+    check_env_batch,
     current_goals,
     evaluate,
     load_agent,
@@ -66,7 +71,9 @@ from utils import (
     make_sampler,
     make_storage,
     mean_losses,
+    memory_device,
     refresh_recall,
+    to_device,
     train_device,
 )
 
@@ -77,6 +84,7 @@ def main(cfg: DictConfig) -> None:
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     check_prior_config(cfg)  # prior.* settings that do not go together are refused before anything is written
+    check_env_batch(cfg)  # several envs: each env's share of a collection batch must be whole episodes
     algo = cfg.algo.name
     device = train_device(cfg)  # networks and updates; envs, memory and collected data stay on the CPU
     # hydra has already moved into outputs/<date>/<time>: resolve against the launch dir
@@ -88,13 +96,14 @@ def main(cfg: DictConfig) -> None:
 
     # Prior memories (read-only): checked against this task (keys, shapes, dtypes) and summarised
     # before the run's own memory is opened
-    priors = make_prior_buffers(cfg)
+    priors = make_prior_buffers(cfg, device=memory_device(cfg))
     prior_dtypes, prior_summaries = check_prior_memories(cfg, priors)
 
     # Create the memory: storage, optional goal sampler, HER on top
     # beside prior memories the run's buffer is sampled in part-batches (PriorMix): no default size
     own_batch = None if cfg.prior.paths else cfg.optim.batch_size
-    replay_buffer = make_replay_buffer(cfg, make_storage(cfg, memory_path), make_sampler(cfg), batch_size=own_batch)
+    replay_buffer = make_replay_buffer(cfg, make_storage(cfg, memory_path, device=memory_device(cfg)), make_sampler(cfg),
+                                       batch_size=own_batch)
     goal_sampler = replay_buffer.sampler if cfg.replay_buffer.sampler.enabled else None
     remembered = len(replay_buffer)
 
@@ -109,14 +118,14 @@ def main(cfg: DictConfig) -> None:
     normalizer = GoalNormalizer(device=device)
     model, exploration_policy = make_agent(cfg, train_env, normalizer)
     loss_module, target_net_updater = make_loss_module(cfg, model)
-    optimizer = make_optimizer(cfg, loss_module)
+    fast = compile_settings(cfg, device)  # compile.*: torch.compile and CUDA graphs for the update
+    optimizer = make_optimizer(cfg, loss_module, capturable=fast["cudagraphs"])
     terms = make_prior_terms(cfg, loss_module, loss_keys(cfg), priors, dtypes=prior_dtypes)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
     if terms.anchor is not None:  # the cloned actor's outputs, saved with the agent
         checkpoint.register("clone_anchor", terms.anchor)
     recover_checkpoint(checkpoint_path)  # a save a kill interrupted leaves only its backup
     progress = run_progress(cfg, checkpoint_path, remembered)  # collector.resume: where the run stopped
-    num_updates = progress["updates"] if progress else 0
     resumed = (cfg.memory.resume_agent or progress is not None) and Checkpoint.is_checkpoint(checkpoint_path)
     if resumed:
         load_agent(checkpoint, checkpoint_path)
@@ -130,21 +139,13 @@ def main(cfg: DictConfig) -> None:
         for rows in mix.prior_rows():
             normalizer.update(rows)
 
-    def update(batch: TensorDictBase, critic_only: bool = False) -> TensorDictBase:
-        """One gradient step on ``batch``; ``critic_only``: the actor (and its prior terms) sit it out."""
-        nonlocal num_updates
-        if recall is not None:
-            refresh_recall(batch, recall)
-        delayed = algo == "TD3" and num_updates % cfg.algo.policy_update_delay != 0  # TD3: actor, targets every d-th
-        train_actor = not (critic_only or delayed)
-        loss_td = terms.loss(batch, train_actor)
-        terms.total(loss_td, train_actor).backward()
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        if critic_only or not delayed:
-            target_net_updater.step()
-        num_updates += 1
-        return loss_td.detach()
+    # One gradient step (``critic_only``: the actor and its prior terms sit it out); TD3 moves its actor and
+    # targets every policy_update_delay-th step. Eager, or compiled / CUDA-graphed (compile.*)
+    update = Updater(terms, optimizer, target_net_updater,
+                     policy_delay=cfg.algo.policy_update_delay if algo == "TD3" else 1, compile=fast["compile"],
+                     compile_mode=fast["mode"], compile_backend=fast["backend"],
+                     cudagraphs=fast["cudagraphs"], warmup=fast["warmup"])
+    update.num_updates = progress["updates"] if progress else 0
 
     # frames of this run so far: every row it added to its memory (a resumed run
     # counts the rows collected after its last checkpoint too)
@@ -168,7 +169,7 @@ def main(cfg: DictConfig) -> None:
             if hasattr(replay_buffer.storage, "flush"):
                 replay_buffer.storage.flush()
             checkpoint.save(checkpoint_path, metadata={
-                "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "updates": num_updates,
+                "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "updates": update.num_updates,
                 "memory_rows_before": remembered, "memory_rows": len(replay_buffer),
                 "frames": collected_frames, "cpu_s": cpu.seconds(), "curve": [list(p) for p in curve],
                 "eval_cpu_s": cpu.evaluation(), "process_cpu_s": cpu.process(),
@@ -183,21 +184,24 @@ def main(cfg: DictConfig) -> None:
         metrics = dict(full_eval() if metrics is None else metrics)
         metrics["time/cpu_s"] = cpu.seconds()
         metrics["time/eval_cpu_s"] = cpu.evaluation()
-        metrics["train/updates"] = num_updates
+        metrics["train/updates"] = update.num_updates
         curve.append((frames, metrics["eval/success_rate"]))
         if logger is not None:
             logger.log_metrics(metrics, frames)
         return metrics["eval/success_rate"]
 
-    def sample(query=None) -> TensorDictBase:
+    def sample(size: int = cfg.optim.batch_size, query=None) -> TensorDictBase:
+        """``size`` rows (HER-relabelled; near ``query``; with the prior's share), recalled priors, on ``device``."""
         if mix is not None:
-            batch = mix.sample(cfg.optim.batch_size, query)
+            batch = mix.sample(size, query)
         elif query is not None:
             with goal_sampler.query(query):
-                batch = replay_buffer.sample()
+                batch = replay_buffer.sample(size)
         else:
-            batch = replay_buffer.sample()
-        return batch if device.type == "cpu" else batch.to(device, non_blocking=True)
+            batch = replay_buffer.sample(size)
+        if recall is not None:
+            refresh_recall(batch, recall)
+        return to_device(batch, device)
 
     # Fresh networks and a prior memory: clone its actions into the actor first (prior.clone_steps),
     # then the pretraining updates below evaluate the cloned actor: they do not move it
@@ -228,6 +232,8 @@ def main(cfg: DictConfig) -> None:
     pbar = tqdm.tqdm(total=cfg.collector.total_frames, initial=collected_frames,
                      desc=f"{algo} {cfg.env.name}", leave=False)
 
+    loop = {"frames": 0, "wall_s": 0.0}  # this launch's collection and updates, evaluation excluded: frames/s
+    tick = time.perf_counter()
     for data in (collector if not done_already else ()):
         # Extend: flat transitions; recalled priors are recomputed at sampling
         data = data.reshape(-1).exclude(*RECALL_KEYS, *[("next", k) for k in RECALL_KEYS])
@@ -243,11 +249,13 @@ def main(cfg: DictConfig) -> None:
         if collected_frames >= init_random_frames:
             critic_only = collected_frames <= cfg.prior.actor_freeze_frames
             n = max(1, int(frames * cfg.optim.utd_ratio))
-            losses = TensorDict(batch_size=[n])
+            losses = []  # kept on the device until the step's end: no host sync an update
             query = current_goals(collector, data) if goal_sampler is not None else None
-            for i in range(n):
-                losses[i] = update(sample(query), critic_only)
-            metrics.update(mean_losses(losses))
+            group = max(1, cfg.optim.batches_per_draw)  # the n batches drawn in groups (update.draw_batches)
+            for first in range(0, n, group):
+                batches = draw_batches(functools.partial(sample, query=query), min(group, n - first), cfg.optim.batch_size)
+                losses += [update(batch, critic_only) for batch in batches]
+            metrics.update(mean_losses(torch.stack(losses)))
             if algo == "SAC":
                 metrics["train/alpha"] = loss_module.log_alpha.exp().item()
         collector.update_policy_weights_()
@@ -260,6 +268,9 @@ def main(cfg: DictConfig) -> None:
         if logger is not None and metrics:
             logger.log_metrics(metrics, collected_frames)
 
+        loop["frames"] += frames
+        loop["wall_s"] += time.perf_counter() - tick
+
         # Evaluate
         if collected_frames % cfg.logger.eval_iter < frames:
             success = log_eval(collected_frames)
@@ -270,6 +281,7 @@ def main(cfg: DictConfig) -> None:
                 break
         if cfg.collector.cpu_budget_s is not None and cpu.seconds() >= cfg.collector.cpu_budget_s:
             break
+        tick = time.perf_counter()
 
     pbar.close()
     collector.shutdown()
@@ -282,9 +294,11 @@ def main(cfg: DictConfig) -> None:
     summary = {
         "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "memory_rows_before": remembered,
         "memory_rows_after": len(replay_buffer), "frames": collected_frames, "frames_to_target": reached_at,
-        "cpu_s": round(cpu.seconds(), 2), "updates": num_updates, "curve": curve,
+        "cpu_s": round(cpu.seconds(), 2), "updates": update.num_updates, "curve": curve,
         "pretrain_updates": pretrained["updates"], "pretrain_checks": pretrained["checks"],
         "pretrain_stopped": pretrained["stopped"], "priors": prior_summaries,
+        "loop_wall_s": round(loop["wall_s"], 3),
+        "frames_per_s": round(loop["frames"] / loop["wall_s"], 2) if loop["wall_s"] else None,
     }
     if hasattr(replay_buffer.storage, "close"):
         replay_buffer.storage.close()

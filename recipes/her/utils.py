@@ -92,9 +92,34 @@ def _build(node: DictConfig, **kwargs):
     return instantiate(node, **kwargs, _convert_="all")
 
 
-def make_storage(cfg: DictConfig, path: str):
-    """The run's storage: a :class:`~torchrl_robotmem.ZarrStorage` at ``path`` by default."""
-    return _build(cfg.replay_buffer.storage, path=path, env=cfg.env.name)
+def make_storage(cfg: DictConfig, path: str, device: torch.device | None = None):
+    """The run's storage: a :class:`~torchrl_robotmem.ZarrStorage` at ``path`` by default.
+
+    ``device``: where its rows are held and sampled (:func:`memory_device`); the
+    ``_target_`` must take a ``device`` (``ZarrStorage`` and TorchRL's tensor storages do).
+    """
+    extra = {} if device is None or device.type == "cpu" else {"device": device}
+    return _build(cfg.replay_buffer.storage, path=path, env=cfg.env.name, **extra)
+
+
+def memory_device(cfg: DictConfig) -> torch.device:
+    """``replay_buffer.device``: where the memory's rows are held and batches drawn.
+
+    ``auto``: the training device. On CUDA, ``ZarrStorage(device="cuda")`` keeps its RAM
+    mirror on the GPU (the store stays on disk): batches are drawn, relabelled and
+    rewarded there, with no host-to-device copy per update.
+    """
+    value = str(cfg.replay_buffer.get("device", "cpu") or "cpu")
+    return train_device(cfg) if value == "auto" else torch.device(value)
+
+
+def to_device(batch: TensorDictBase, device: torch.device) -> TensorDictBase:
+    """``batch`` on ``device``: as it is if already there, else through pinned memory, without blocking."""
+    if batch.device == device:
+        return batch
+    if device.type == "cuda" and batch.device is not None and batch.device.type == "cpu":
+        batch = batch.pin_memory()
+    return batch.to(device, non_blocking=True)
 
 
 def make_sampler(cfg: DictConfig):
@@ -126,14 +151,15 @@ def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int |
     )
 
 
-def make_prior_buffers(cfg: DictConfig) -> list[HERReplayBuffer]:
+def make_prior_buffers(cfg: DictConfig, device: torch.device | None = None) -> list[HERReplayBuffer]:
     """One HER buffer per ``prior.paths`` entry, on a read-only :class:`~torchrl_robotmem.ZarrStorage`.
 
     They are sampled in part-batches only (``prior_memory.PriorMix``), so they have no batch size.
+    ``device``: where their rows are held (that of the run's own memory).
     """
     buffers = []
     for path in cfg.prior.paths:
-        storage = ZarrStorage(to_absolute_path(str(path)), read_only=True)
+        storage = ZarrStorage(to_absolute_path(str(path)), read_only=True, device=device or "cpu")
         if not len(storage):
             raise ValueError(f"the prior memory {path!r} holds no transitions.")
         buffers.append(make_replay_buffer(cfg, storage, batch_size=None))
@@ -173,16 +199,37 @@ def current_goals(collector: Collector, data: TensorDictBase) -> torch.Tensor:
 
 
 def make_environment(cfg: DictConfig, memory=None):
-    """Train env (``env.num_envs`` in series) and eval env (one env per eval episode)."""
-    return make_task_env(cfg, cfg.env.num_envs, cfg.seed, memory), make_eval_env(cfg, cfg.logger.eval_episodes, memory)
+    """Train env (``env.num_envs``, in worker processes with ``env.parallel``) and eval env (one env per episode)."""
+    check_env_batch(cfg)
+    train = make_task_env(cfg, cfg.env.num_envs, cfg.seed, memory, parallel=bool(cfg.env.get("parallel", False)))
+    return train, make_eval_env(cfg, cfg.logger.eval_episodes, memory)
 
 
-def make_task_env(cfg: DictConfig, num_envs: int, seed: int, memory=None):
-    """``num_envs`` envs of ``cfg.env.name`` in series, with the episode reward and (when enabled) recall."""
+def check_env_batch(cfg: DictConfig) -> None:
+    """Refuses a collection batch that would cut episodes apart in the memory.
+
+    The collector returns ``[num_envs, frames_per_batch / num_envs]``, stored env by
+    env; HER finds an episode's future goals in the rows after it, so with several
+    envs each env's share of a batch must hold whole episodes.
+    """
+    n, frames, steps = cfg.env.num_envs, cfg.collector.frames_per_batch, cfg.env.max_episode_steps
+    if n < 1:
+        raise ValueError(f"env.num_envs must be >= 1, got {n}.")
+    if n > 1 and frames % (n * steps):
+        good = n * steps * max(1, round(frames / (n * steps)))
+        raise ValueError(
+            f"collector.frames_per_batch={frames} with env.num_envs={n}: each env's share of a batch must be whole "
+            f"episodes of env.max_episode_steps={steps} (HER reads an episode's rows in one piece), so "
+            f"frames_per_batch must be a multiple of {n * steps}: e.g. collector.frames_per_batch={good}.")
+
+
+def make_task_env(cfg: DictConfig, num_envs: int, seed: int, memory=None, parallel: bool = False):
+    """``num_envs`` envs of ``cfg.env.name`` (in series, or one process each with ``parallel``), with the episode
+    reward and (when enabled) recall; the transforms run in this process, on the whole batch."""
     recall = make_recall(cfg, memory) if memory is not None else None
     transforms = [RewardSum()] + ([recall] if recall is not None else [])
     return make_env(cfg.env.name, num_envs, seed=seed, max_episode_steps=cfg.env.max_episode_steps,
-                    transforms=transforms)
+                    transforms=transforms, parallel=parallel and num_envs > 1)
 
 
 def make_eval_env(cfg: DictConfig, episodes: int, memory=None):
@@ -292,7 +339,12 @@ class GoalNormalizer:
         count, total, squares = self.stats[name]
         mean = total / count
         std = (squares / count - mean.pow(2)).clamp_min(0).sqrt().clamp_min(self.eps)
-        setattr(self, f"_{name}", (mean.float().to(self.device), std.float().to(self.device)))
+        current = getattr(self, f"_{name}", None)
+        if current is None or current[0].shape != mean.shape:
+            setattr(self, f"_{name}", (mean.float().to(self.device), std.float().to(self.device)))
+        else:  # in place: a compiled or CUDA-graphed update keeps reading the same tensors
+            current[0].copy_(mean, non_blocking=True)
+            current[1].copy_(std, non_blocking=True)
 
     def update(self, data: TensorDictBase) -> None:
         self._accumulate("observation", data["observation"])
@@ -458,11 +510,12 @@ def make_loss_module(cfg: DictConfig, model):
     return loss, SoftUpdate(loss, eps=cfg.optim.target_update_polyak)
 
 
-def make_optimizer(cfg: DictConfig, loss_module):
+def make_optimizer(cfg: DictConfig, loss_module, capturable: bool = False):
     """One Adam per parameter group (actor, critic, and SAC's entropy), grouped.
 
     The actor's learning rate is ``prior.actor_lr`` where set, else ``optim.lr`` (even
     1e-5 did not keep a cloned FetchPush actor, docs/notes/results_log.md section 12).
+    ``capturable``: the optimisers' state on the device, as a CUDA-graphed update needs.
     """
     critic = loss_module.qvalue_network_params if hasattr(loss_module, "qvalue_network_params") \
         else loss_module.value_network_params
@@ -471,10 +524,12 @@ def make_optimizer(cfg: DictConfig, loss_module):
         list(critic.flatten_keys().values()),
     ]
     kw = dict(weight_decay=cfg.optim.weight_decay, eps=cfg.optim.adam_eps)
+    if capturable:
+        kw["capturable"] = True
     actor_lr = cfg.prior.actor_lr or cfg.optim.lr
     optimizers = [optim.Adam(g, lr=lr, **kw) for g, lr in zip(groups, (actor_lr, cfg.optim.lr))]
     if cfg.algo.name == "SAC":
-        optimizers.append(optim.Adam([loss_module.log_alpha], lr=cfg.optim.lr))
+        optimizers.append(optim.Adam([loss_module.log_alpha], lr=cfg.optim.lr, **({"capturable": True} if capturable else {})))
     return group_optimizers(*optimizers)
 
 
