@@ -14,8 +14,8 @@ time. Run from the repository root::
 
 The memmap reopen is TorchRL's own: ``LazyMemmapStorage(n, scratch_dir=d)``
 then ``loads(d)`` on the directory it wrote (``dumps``), which maps the files.
-``PYTHONPATH=<another checkout>`` times another version of the package on the
-same stores.
+``--baseline DIR`` times another version of the package (a directory holding
+its ``torchrl_robotmem``) on the same stores, interleaved with this one.
 """
 from __future__ import annotations
 
@@ -38,10 +38,11 @@ torch.set_num_threads(1)
 kind, path, rows = sys.argv[1], sys.argv[2], int(sys.argv[3])
 phases = {}
 if kind == "memmap":
+    from pathlib import Path
     from torchrl.data import LazyMemmapStorage
     t = time.perf_counter()
     s = LazyMemmapStorage(rows, scratch_dir=path)
-    s.loads(path)
+    s.loads(Path(path))
     n = len(s)
 else:
     from torchrl_robotmem.storage import ZarrStorage, integrity, loader
@@ -76,7 +77,8 @@ if kind != "memmap":
     phases["other"] = total - sum(phases.values())
 else:
     total = time.perf_counter() - t
-print(json.dumps({"total": total, "rows": n, "phases": phases}))
+import torchrl_robotmem
+print(json.dumps({"total": total, "rows": n, "phases": phases, "package": torchrl_robotmem.__file__}))
 if kind != "memmap":
     s.close()
 """
@@ -111,11 +113,19 @@ def build(root: Path, rows: int) -> tuple[Path, Path]:
     return zpath, mpath
 
 
-def open_once(kind: str, zpath: Path, mpath: Path, rows: int) -> dict:
+def open_once(kind: str, zpath: Path, mpath: Path, rows: int, package_dir: str | None = None) -> dict:
+    """One open in a fresh process; ``package_dir``: the directory holding another ``torchrl_robotmem`` to time."""
     path = mpath if kind == "memmap" else zpath
+    env = dict(os.environ)
+    if package_dir:
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_dir, env.get("PYTHONPATH")]))
+    # run outside the checkout: `python -c` puts the working directory first on sys.path
     out = subprocess.run([sys.executable, "-c", CHILD, kind, str(path), str(rows)], capture_output=True, text=True,
-                         check=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+                         check=True, env=env, cwd=zpath.parent)
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    if package_dir and not Path(result["package"]).resolve().is_relative_to(Path(package_dir).resolve()):
+        raise RuntimeError(f"--baseline {package_dir}: the child imported {result['package']} instead")
+    return result
 
 
 def main() -> None:
@@ -123,39 +133,46 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=1_000_000)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--keep", default=None, help="directory for the stores, kept (reused when already built)")
+    parser.add_argument("--baseline", default=None,
+                        help="a directory holding another torchrl_robotmem (e.g. `git archive <commit> torchrl_robotmem "
+                             "| tar -x -C DIR`), timed in the same run, interleaved")
     args = parser.parse_args()
     root = Path(args.keep or tempfile.mkdtemp(prefix="bench_open_"))
     root.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
     zpath, mpath = build(root, args.rows)
     print(f"stores under {root} ({time.perf_counter() - t:.0f} s)", file=sys.stderr)
-    for kind in KINDS:  # warm the page cache
-        open_once(kind, zpath, mpath, args.rows)
-    runs: dict[str, list] = {k: [] for k in KINDS}
+    cases = [(k, None) for k in KINDS]
+    if args.baseline:
+        cases += [("writable", args.baseline), ("read-only", args.baseline)]
+    for kind, pkg in cases:  # warm the page cache
+        open_once(kind, zpath, mpath, args.rows, pkg)
+    runs: dict[tuple, list] = {c: [] for c in cases}
     for rep in range(args.repeat):
-        for kind in KINDS[rep % 3:] + KINDS[:rep % 3]:
-            runs[kind].append(open_once(kind, zpath, mpath, args.rows))
-    med = {k: statistics.median(r["total"] for r in v) for k, v in runs.items()}
+        for case in cases[rep % len(cases):] + cases[:rep % len(cases)]:
+            runs[case].append(open_once(case[0], zpath, mpath, args.rows, case[1]))
+    med = {c: statistics.median(r["total"] for r in v) for c, v in runs.items()}
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                           text=True).stdout.strip()
-    import torchrl_robotmem
     print(f"{args.rows:,} FetchPush rows, median of {args.repeat} fresh-process opens each (page cache warm, "
-          f"imports not counted), {len(os.sched_getaffinity(0))} CPUs, commit {head}, package "
-          f"{Path(torchrl_robotmem.__file__).parent}\n")
+          f"imports not counted), {len(os.sched_getaffinity(0))} CPUs, commit {head}"
+          + (f", baseline {args.baseline}" if args.baseline else "") + "\n")
     print("| open | s (median) | min - max | x memmap reopen |")
     print("|---|---|---|---|")
     labels = {"writable": "`ZarrStorage(path)`", "read-only": "`ZarrStorage(path, read_only=True)`",
               "memmap": "`LazyMemmapStorage` + `loads` (maps the files)"}
-    for kind in KINDS:
-        times = [r["total"] for r in runs[kind]]
-        print(f"| {labels[kind]} | {med[kind]:.3f} | {min(times):.3f} - {max(times):.3f} | "
-              f"{med[kind] / med['memmap']:.0f}x |")
-    print("\n| phase (median s) | writable | read-only |")
-    print("|---|---|---|")
-    names = list(dict.fromkeys(p for k in ("writable", "read-only") for r in runs[k] for p in r["phases"]))
+    memmap = med[("memmap", None)]
+    for case in cases:
+        times = [r["total"] for r in runs[case]]
+        label = labels[case[0]] + (" baseline" if case[1] else "")
+        print(f"| {label} | {med[case]:.3f} | {min(times):.3f} - {max(times):.3f} | {med[case] / memmap:.0f}x |")
+    zarr_cases = [c for c in cases if c[0] != "memmap"]
+    print("\n| phase (median s) | " + " | ".join(c[0] + (" baseline" if c[1] else "") for c in zarr_cases) + " |")
+    print("|---|" + "---|" * len(zarr_cases))
+    names = list(dict.fromkeys(p for c in zarr_cases for r in runs[c] for p in r["phases"]))
     for name in names:
-        cells = [statistics.median(r["phases"].get(name, 0.0) for r in runs[k]) for k in ("writable", "read-only")]
-        print(f"| {name} | {cells[0]:.3f} | {cells[1]:.3f} |")
+        cells = [statistics.median(r["phases"].get(name, 0.0) for r in runs[c]) for c in zarr_cases]
+        print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in cells) + " |")
 
 
 if __name__ == "__main__":

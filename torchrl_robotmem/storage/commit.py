@@ -98,9 +98,7 @@ class CommitEngine:
         self._worker: CommitWorker | None = None  # the worker this store is open in
         self._worker_synced = False  # the worker drops what it cached of this store on our first request
         self._via_worker = False  # switched on (once) when the worker is ready; in-process until then
-        self._route_lock = threading.RLock()
-        if worker_path is not None:
-            CommitWorker.get()  # start it now: its imports overlap the first rows being written
+        self._route_lock = threading.RLock()  # the worker starts once the open has read (MemoryStore.open_arrays)
 
     def set_committed(self, attrs: dict) -> None:
         """Records the commit record found on disk (at open): ``len`` and ``write_count``."""

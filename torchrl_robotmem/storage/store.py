@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from . import lifecycle, loader, writer_sync
+from ._commit_worker import CommitWorker
 from .commit import CommitEngine
 from .context import missing_context, user_stacklevel
 from .format import writing_handles
@@ -83,7 +84,9 @@ class MemoryStore:
         self.restored_writers = weakref.WeakSet()  # this session's state
 
     def open_arrays(self) -> None:
-        """A writer's handles on the stored arrays."""
+        """A writer's handles on the stored arrays; starts its commit worker (after the open's reads)."""
+        if self.engine.worker_path is not None:
+            CommitWorker.get()  # started now, not at build: its imports overlap the first writes, not the open's reads
         self.engine.arrays.update(writing_handles(self.handle.group, self.mirror.schema or ()))
 
     def note_stored(self, n0: int) -> None:
