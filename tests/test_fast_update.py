@@ -33,13 +33,13 @@ def _cfg(*overrides: str):
                                                         *overrides])
 
 
-def _agent(cfg, env, data, seed: int = 0):
+def _agent(cfg, env, data, seed: int = 0, compiled: bool = False):
     """The recipe's agent, loss, optimiser and update terms, built from ``seed``."""
     torch.manual_seed(seed)
     normalizer = utils.GoalNormalizer()
     normalizer.update(data)
     model, _ = utils.make_agent(cfg, env, normalizer)
-    loss, target = utils.make_loss_module(cfg, model)
+    loss, target = utils.make_loss_module(cfg, model, compiled=compiled)
     optimizer = utils.make_optimizer(cfg, loss)
     return loss, PriorTerms(loss, utils.loss_keys(cfg)), optimizer, target
 
@@ -119,8 +119,8 @@ def test_compiled_update_matches_eager(reach_rows):
     rb = utils.make_replay_buffer(cfg, LazyTensorStorage(1000))
     rb.extend(rows)
     batches = [rb.sample() for _ in range(4)]
-    eager = _agent(cfg, env, rows)
-    compiled = _agent(cfg, env, rows)
+    eager = _agent(cfg, env, rows, compiled=True)  # vmap over the critics in both: the same arithmetic
+    compiled = _agent(cfg, env, rows, compiled=True)
     run_eager = Updater(*eager[1:])
     run_compiled = Updater(*compiled[1:], compile=True, compile_backend="aot_eager", warmup=1)
     for i, batch in enumerate(batches):

@@ -117,8 +117,8 @@ def main(cfg: DictConfig) -> None:
     # Create agent, loss (with the prior-memory terms), optimiser
     normalizer = GoalNormalizer(device=device)
     model, exploration_policy = make_agent(cfg, train_env, normalizer)
-    loss_module, target_net_updater = make_loss_module(cfg, model)
     fast = compile_settings(cfg, device)  # compile.*: torch.compile and CUDA graphs for the update
+    loss_module, target_net_updater = make_loss_module(cfg, model, compiled=fast["compile"])
     optimizer = make_optimizer(cfg, loss_module, capturable=fast["cudagraphs"])
     terms = make_prior_terms(cfg, loss_module, loss_keys(cfg), priors, dtypes=prior_dtypes)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)

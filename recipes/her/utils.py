@@ -469,9 +469,18 @@ def _activation(cfg: DictConfig):
 # ------------------
 
 
-def make_loss_module(cfg: DictConfig, model):
+def make_loss_module(cfg: DictConfig, model, compiled: bool = False):
+    """The algorithm's TorchRL loss and its target-network updater.
+
+    ``optim.deactivate_vmap`` (``auto``): a Python loop over the twin critics when
+    the update runs eagerly (faster on the CPU), ``torch.func.vmap`` when it is
+    ``compiled``: the loop's pytree switch changes a dict torch.compile guards on,
+    so every compiled call would recompile (tensordict 0.14.3, torch 2.13).
+    """
     actor, qvalue = model
     algo = cfg.algo.name
+    no_vmap = cfg.optim.deactivate_vmap
+    no_vmap = not compiled if no_vmap in ("auto", None) else bool(no_vmap)
     if algo == "SAC":
         loss = SACLoss(
             actor_network=actor,
@@ -482,7 +491,7 @@ def make_loss_module(cfg: DictConfig, model):
             delay_qvalue=True,
             alpha_init=cfg.algo.alpha_init,
             target_entropy=cfg.algo.target_entropy,
-            deactivate_vmap=cfg.optim.deactivate_vmap,
+            deactivate_vmap=no_vmap,
         )
     elif algo == "TD3":
         loss = TD3Loss(
@@ -495,7 +504,7 @@ def make_loss_module(cfg: DictConfig, model):
             action_spec=actor[-1].spec,
             policy_noise=cfg.algo.policy_noise,
             noise_clip=cfg.algo.noise_clip,
-            deactivate_vmap=cfg.optim.deactivate_vmap,
+            deactivate_vmap=no_vmap,
         )
     else:
         loss = DDPGLoss(
