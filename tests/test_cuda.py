@@ -13,7 +13,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
-from torchrl.data import HERReplayBuffer, LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import HERReplayBuffer, TensorDictReplayBuffer
 from torchrl.envs.utils import RandomPolicy
 
 from torchrl_robotmem import GoalSimilaritySampler, RecallTransform, ZarrStorage, make_env, make_reward_fn, recall
@@ -164,13 +164,15 @@ def test_cuda_env_recall_transform(tmp_path):
     rb.storage.close()
 
 
-def test_cuda_her_over_zarr_matches_lazy_tensor_storage(tmp_path):
-    """HERReplayBuffer over ZarrStorage(device="cuda") does what it does over TorchRL's LazyTensorStorage on CUDA.
+def test_cuda_her_over_zarr_samples_on_the_device(tmp_path):
+    """HERReplayBuffer over ZarrStorage(device="cuda"): relabelled, rewarded batches on the GPU, as on the CPU.
 
-    TorchRL 0.14.1's HER keeps episode bounds on the CPU while a CUDA storage
-    draws CUDA indices (a device mismatch in ``_sample_goal_indices``); whatever
-    TorchRL does there, ZarrStorage must do the same. The recipe keeps the
-    memory on the CPU and moves each batch (``device=cuda``), which works.
+    TorchRL 0.14.1's HER keeps episode bounds on the CPU while a CUDA
+    ``LazyTensorStorage`` draws CUDA indices (a device mismatch in
+    ``_sample_goal_indices``). ZarrStorage draws its indices on the CPU
+    (``storage/indices.py``), so the same seed gives the same rows on either
+    device; relabelled rewards on the GPU come from ``GoalRewardFn.torch_reward``
+    (no host round trip) and equal the env's own.
     """
     env = make_env("FetchPush-v4", seed=0)
     try:
@@ -179,26 +181,24 @@ def test_cuda_her_over_zarr_matches_lazy_tensor_storage(tmp_path):
         env.close()
     reward_fn = make_reward_fn("FetchPush-v4")
     batches = {}
-    for name, storage in (("zarr", ZarrStorage(tmp_path / "her.zarr", 1000, device=DEVICE)),
-                          ("lazy", LazyTensorStorage(1000, device=DEVICE))):
-        her = HERReplayBuffer(reward_fn, her_ratio=1.0, strategy="future", achieved_goal_key=("next", "achieved_goal"),
-                              storage=storage, batch_size=128)
-        her.extend(data.to(CUDA))
+    for device in (DEVICE, "cpu"):
+        storage = ZarrStorage(tmp_path / f"her-{device}.zarr", 1000, env="FetchPush-v4", device=device)
+        her = HERReplayBuffer(reward_fn, her_ratio=0.8, strategy="future", achieved_goal_key=("next", "achieved_goal"),
+                              storage=storage, batch_size=512)
+        her.extend(data)
         torch.manual_seed(0)
-        try:
-            batch = her.sample()
-        except RuntimeError as err:  # TorchRL's own behaviour on a CUDA storage, recorded for both
-            batches[name] = str(err).split("\n")[0]
-        else:
-            assert batch["next", "reward"].device == CUDA
-            assert torch.equal(batch["next", "reward"], reward_fn(batch))
-            batches[name] = batch.select("observation", "desired_goal", ("next", "reward")).cpu()
-        if name == "zarr":
-            storage.close()
-    if isinstance(batches["lazy"], str):
-        assert batches["zarr"] == batches["lazy"]
-    else:
-        torch.testing.assert_close(batches["zarr"], batches["lazy"])
+        batch = her.sample()
+        want = torch.device("cpu") if device == "cpu" else CUDA
+        assert batch["observation"].device == want and batch["next", "reward"].device == want
+        batches[device] = batch.cpu()
+        storage.close()
+    gpu, cpu = batches[DEVICE], batches["cpu"]
+    for key in ("observation", "desired_goal", ("next", "achieved_goal"), "action"):
+        assert torch.equal(gpu[key], cpu[key]), key
+    assert (gpu["desired_goal"] != data["desired_goal"][0]).any()  # relabelled rows are there
+    distance = torch.linalg.vector_norm(cpu["next", "achieved_goal"].double() - cpu["desired_goal"].double(), dim=-1)
+    clear = (distance - 0.05).abs() > 1e-9  # the env's threshold; float64 rounding aside, both must agree
+    assert torch.equal(gpu["next", "reward"][clear], cpu["next", "reward"][clear])
 
 
 def _recipe(tmp_path, *overrides: str, out: str = "out") -> dict:
@@ -218,14 +218,17 @@ def _recipe(tmp_path, *overrides: str, out: str = "out") -> dict:
     return json.loads((tmp_path / out / "summary.json").read_text())
 
 
+EAGER = ("compile.compile=false", "compile.cudagraphs=false")  # the recipe tests below that are not about compiling
+
+
 @pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
 def test_cuda_recipe_trains_and_resumes(tmp_path, algo):
-    """device=cuda: networks and updates on the GPU, envs and the Zarr memory on the CPU; a second run resumes."""
+    """device=cuda: networks, updates and the memory's RAM mirror on the GPU, envs on the CPU; a second run resumes."""
     memory = f"memory.path={tmp_path / 'mem.zarr'}"
-    first = _recipe(tmp_path, f"algo={algo}", memory, "memory.recall.enabled=true")
+    first = _recipe(tmp_path, f"algo={algo}", memory, "memory.recall.enabled=true", *EAGER)
     assert first["frames"] == 50 and first["memory_rows_after"] == 50 and first["updates"] > 0
     again = _recipe(tmp_path, f"algo={algo}", memory, "memory.recall.enabled=true", "memory.resume_agent=true",
-                    out="again")
+                    *EAGER, out="again")
     assert again["memory_rows_before"] == 50 and again["memory_rows_after"] == 100
 
 
@@ -236,10 +239,73 @@ def test_cuda_recipe_with_a_prior_memory_clone_and_anchor(tmp_path):
     prior = tmp_path / "scripted-push.zarr"
     collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0"])
     s = _recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'td3.zarr'}", "prior=bc", f"prior.paths=[{prior}]",
+                *EAGER,
                 "prior.clone_steps=5", "prior.bc=0.4", "prior.bc_original_goals=true",
                 "prior.clone_anchor=10", "prior.freeze_normalizer=true", out="td3")
     assert s["updates"] > 0
     s = _recipe(tmp_path, "env=push", f"memory.path={tmp_path / 'crr.zarr'}", "prior=mix", f"prior.paths=[{prior}]", "algo=td3",
                 "prior.clone_steps=5", "prior.actor_update=crr", "replay_buffer.sampler.enabled=true",
-                out="crr")
+                *EAGER, out="crr")
     assert s["updates"] > 0
+
+
+# -- the fast path (issue 26): compiled, CUDA-graphed updates ------------------------------------------
+
+
+def _update_parts(algo: str, rows, env, compiled: bool, graphs: bool):
+    from test_fast_update import _cfg
+
+    from recipes.her import utils
+    from recipes.her.prior_memory import PriorTerms
+    from recipes.her.update import Updater
+
+    cfg = _cfg(f"algo={algo}", f"device={DEVICE}")
+    torch.manual_seed(0)
+    normalizer = utils.GoalNormalizer(device=CUDA)
+    normalizer.update(rows)
+    model, _ = utils.make_agent(cfg, env, normalizer)
+    loss, target = utils.make_loss_module(cfg, model, compiled=True)
+    optimizer = utils.make_optimizer(cfg, loss, capturable=graphs)
+    updater = Updater(PriorTerms(loss, utils.loss_keys(cfg)), optimizer, target, compile=compiled,
+                      compile_mode="default", cudagraphs=graphs, warmup=2,
+                      policy_delay=cfg.algo.policy_update_delay if algo == "td3" else 1)
+    return cfg, loss, updater, normalizer
+
+
+@pytest.mark.skipif(DEVICE != "cuda", reason="CUDA graphs")
+def test_cuda_graphed_update_matches_eager(tmp_path):
+    """DDPG (no random draws in its loss): compiled + CUDA-graphed steps give the eager losses and parameters,
+    also after the normaliser's statistics change (updated in place, read by the captured graph)."""
+
+    env = make_env("FetchReach-v4", seed=0)
+    rows = env.rollout(200, break_when_any_done=False)
+    out = {}
+    for name, compiled, graphs in (("eager", False, False), ("graphed", True, True)):
+        cfg, loss, updater, normalizer = _update_parts("ddpg", rows, env, compiled, graphs)
+        rb = HERReplayBuffer(make_reward_fn("FetchReach-v4"), achieved_goal_key=("next", "achieved_goal"),
+                             storage=ZarrStorage(tmp_path / f"{name}.zarr", 1000, env="FetchReach-v4", device=DEVICE),
+                             batch_size=cfg.optim.batch_size)
+        rb.extend(rows)
+        torch.manual_seed(1)
+        batches = [rb.sample() for _ in range(12)]
+        losses = []
+        for i, batch in enumerate(batches):
+            if i == 6:
+                normalizer.update(rows[:50] * 1.5)
+            losses.append(updater(batch)["loss_value"])
+        out[name] = (torch.stack(losses).cpu(), {k: v.detach().cpu() for k, v in loss.state_dict().items()})
+    torch.testing.assert_close(out["graphed"][0], out["eager"][0], rtol=1e-3, atol=1e-5)
+    for key, value in out["eager"][1].items():
+        torch.testing.assert_close(out["graphed"][1][key], value, rtol=1e-3, atol=1e-5, msg=key)
+    env.close()
+
+
+@pytest.mark.skipif(DEVICE != "cuda", reason="CUDA graphs")
+def test_cuda_recipe_compiled_and_graphed_by_default(tmp_path):
+    """device=cuda's defaults (compile, CUDA graphs, memory on the GPU): SAC trains, resumes, reports frames/s."""
+    memory = f"memory.path={tmp_path / 'mem.zarr'}"
+    first = _recipe(tmp_path, memory, "collector.total_frames=100", "logger.eval_iter=100")
+    assert first["frames"] == 100 and first["updates"] > 0 and first["frames_per_s"] > 0
+    again = _recipe(tmp_path, memory, "collector.total_frames=100", "logger.eval_iter=100",
+                    "memory.resume_agent=true", out="again")
+    assert again["memory_rows_before"] == 100 and again["memory_rows_after"] == 200

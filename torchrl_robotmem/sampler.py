@@ -19,12 +19,14 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict.utils import NestedKey
-from torchrl.data.replay_buffers.samplers import Sampler
+from torchrl.data.replay_buffers.samplers import RandomSampler, Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
 from torchrl_robotmem.goal_index import GoalIndex, RowFilter
 from torchrl_robotmem.goal_index.metrics import GoalMetric
 from torchrl_robotmem.goal_index.tracking import live_column
+
+_UNIFORM = RandomSampler()  # TorchRL's uniform draw: the storage's own indices (ZarrStorage: on the CPU)
 
 __all__ = ["GoalSimilaritySampler"]
 
@@ -239,7 +241,7 @@ class GoalSimilaritySampler(Sampler):
 
     def _uniform_rows(self, index: GoalIndex, storage: Storage, n: int) -> torch.Tensor:
         if self.filter.matches_all:
-            return storage._rand_given_ndim(n)
+            return _UNIFORM.sample(storage, n)[0]
         rows = index.member_rows(self.filter)
         if rows.numel() == 0:
             raise RuntimeError(f"no stored row matches the sampler's filter {self.filter!r}.")
@@ -251,7 +253,7 @@ class GoalSimilaritySampler(Sampler):
             raise RuntimeError(_EMPTY_STORAGE_ERROR)
         if self._query is None:
             if self.filter.matches_all:
-                return storage._rand_given_ndim(batch_size), {}
+                return _UNIFORM.sample(storage, batch_size)[0], {}
             # no query, but the filters still hold: uniform over the matching rows
             return self._uniform_rows(self.index_for(storage), storage, batch_size).to(torch.long), {}
         index = self.index_for(storage)

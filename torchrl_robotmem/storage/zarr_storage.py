@@ -16,6 +16,7 @@ from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
 from . import compat, lifecycle, loader
 from .checkpointer import ZarrCheckpointer
+from .indices import HostIndices
 from .planner import check_rows, completes_chunk, cursor_rows, last_index, plan_write, write_span
 from .schema import DataKind
 from .state import rows_of_state, source_kind, state_rows
@@ -26,7 +27,7 @@ __all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
 
 
 
-class ZarrStorage(LazyTensorStorage):
+class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CUDA mirror (indices.py)
     """A persistent, crash-safe TorchRL storage backed by a Zarr v3 store.
 
     A :class:`~torchrl.data.LazyTensorStorage` written through to Zarr; reopening the path restores every row,
