@@ -13,6 +13,7 @@
 #   bench_reach.json bench_update.py for reach, last, if time is left
 # GPU_SESSION_DRYRUN=1 runs the same commands here on the CPU with tiny budgets (OUT=/tmp/gpu_out,
 # PYTHON=python3 unless set): the check that the script runs before a GPU session spends its minutes.
+# Dry run only: GPU_SESSION_SITE=DIR uses wheels already installed in DIR instead of installing them again.
 set -u
 cd "$(dirname "$0")/../.." || exit 1
 ROOT=$PWD
@@ -20,8 +21,7 @@ T0=$(date +%s)
 DRY=${GPU_SESSION_DRYRUN:-0}
 PY=${PYTHON:-python3}
 if [ "$DRY" = 1 ]; then
-  OUT=${OUT:-/tmp/gpu_out}
-  rm -rf "$OUT"
+  if [ -z "${OUT:-}" ]; then OUT=/tmp/gpu_out; rm -rf "$OUT"; fi  # a given OUT is appended to, never removed
   DEV=cpu
 else
   DEV=cuda
@@ -34,13 +34,14 @@ RUNS=$(mktemp -d /tmp/gpu_runs.XXXX)  # recipe run dirs and memories: not under 
 log() { echo "[$(date -u +%T) +$(( $(date +%s) - T0 ))s] $*" | tee -a "$OUT/env.txt"; }
 
 # stage NAME LIMIT_S LOGFILE CMD...: CMD under min(LIMIT_S, what is left of the budget), output appended to
-# $OUT/LOGFILE; SIGINT at the limit (python prints its traceback), SIGKILL 10 s later. Skipped under 20 s left.
+# $OUT/LOGFILE; SIGINT at the limit (python prints its traceback), SIGKILL 10 s later. Skipped (status 3) under
+# 20 s left; otherwise status 0 whatever CMD's, so that one stage failing does not stop the next.
 stage() {
   local name=$1 limit=$2 file=$3 left t s rc
   shift 3
   left=$(( BUDGET - ($(date +%s) - T0) ))
   t=$(( limit < left ? limit : left ))
-  if [ "$t" -lt 20 ]; then log "stage $name: SKIPPED (${left}s of the budget left)"; return 0; fi
+  if [ "$t" -lt 20 ]; then log "stage $name: SKIPPED (${left}s of the budget left)"; return 3; fi
   log "stage $name: start, timeout ${t}s: $*"
   echo "===== $name: $* (timeout ${t}s)" >>"$OUT/$file"
   s=$(date +%s.%N)
@@ -57,7 +58,7 @@ recipe() {
   shift 3
   s=$(date +%s.%N)
   stage "recipe:$label" "$limit" "$file" "$PY" recipes/her/train.py "$@" logger.plot=false logger.backend= \
-    "memory.path=$dir/m.zarr" "hydra.run.dir=$dir/out"
+    "memory.path=$dir/m.zarr" "hydra.run.dir=$dir/out" || return 0
   "$PY" - "$label" "$dir/out/summary.json" "$(awk "BEGIN{print $(date +%s.%N)-$s}")" >>"$OUT/$file" 2>&1 <<'PY'
 import json, os, sys
 label, path, wall = sys.argv[1], sys.argv[2], float(sys.argv[3])
