@@ -148,10 +148,15 @@ recipe reach_cuda recipe.log 75 env=reach device="$DEV" logger.target_success=0.
 recipe reach_cpu recipe.log 75 env=reach device=cpu logger.target_success=0.95 "${REACH_RUN[@]}"
 
 # d. FetchPush on the CPU cores: 8 envs in worker processes vs 1 env, same threads, 400 frames a batch
-WORKER=(env=push device=cpu collector.frames_per_batch=400 num_threads="$THREADS" logger.eval_iter=100000
+WORKER=(env=push device=cpu collector.frames_per_batch=400 logger.eval_iter=100000
         logger.eval_episodes=5 "${WORKER_RUN[@]}")
-recipe "push_cpu_${ENVS}envs" cpu_workers.log 60 "${WORKER[@]}" env.num_envs="$ENVS" env.parallel=true
-recipe push_cpu_1env cpu_workers.log 60 "${WORKER[@]}" env.num_envs=1
+recipe "push_cpu_${ENVS}envs" cpu_workers.log 60 "${WORKER[@]}" env.num_envs="$ENVS" env.parallel=true num_threads="$THREADS"
+recipe push_cpu_1env_1thread cpu_workers.log 60 "${WORKER[@]}" env.num_envs=1 num_threads=1  # the goal's baseline
+recipe push_cpu_1env cpu_workers.log 60 "${WORKER[@]}" env.num_envs=1 num_threads="$THREADS"
+
+# d2. opening a 1M-row memory on 16 cores (the issue's <= 0.5 s goal), against LazyMemmapStorage's reopen
+OPEN_ROWS=1000000; [ "$DRY" = 1 ] && OPEN_ROWS=100000
+stage open 100 bench.log "$PY" benchmarks/bench_open.py --rows "$OPEN_ROWS" --repeat 3
 
 # e. what is left: the same benchmark for reach
 stage bench:reach 150 bench.log "$PY" benchmarks/bench_update.py --device "$DEV" --configs reach \
