@@ -223,7 +223,7 @@ EAGER = ("compile.compile=false", "compile.cudagraphs=false")  # the recipe test
 
 @pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
 def test_cuda_recipe_trains_and_resumes(tmp_path, algo):
-    """device=cuda: networks, updates and the memory's RAM mirror on the GPU, envs on the CPU; a second run resumes."""
+    """device=cuda: networks and updates on the GPU (the memory too, but not with recall); a second run resumes."""
     memory = f"memory.path={tmp_path / 'mem.zarr'}"
     first = _recipe(tmp_path, f"algo={algo}", memory, "memory.recall.enabled=true", *EAGER)
     assert first["frames"] == 50 and first["memory_rows_after"] == 50 and first["updates"] > 0

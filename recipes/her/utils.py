@@ -105,7 +105,7 @@ def make_storage(cfg: DictConfig, path: str, device: torch.device | None = None)
 def memory_device(cfg: DictConfig) -> torch.device:
     """``replay_buffer.device``: where the memory's rows are held and batches drawn.
 
-    ``auto``: the training device (the CPU with the goal sampler). On CUDA, ``ZarrStorage(device="cuda")`` keeps its RAM
+    ``auto``: the training device (the CPU with the goal sampler or recall). On CUDA, ``ZarrStorage(device="cuda")`` keeps its RAM
     mirror on the GPU (the store stays on disk): batches are drawn, relabelled and
     rewarded there, with no host-to-device copy per update.
     """
@@ -113,8 +113,10 @@ def memory_device(cfg: DictConfig) -> torch.device:
     if value != "auto":
         return torch.device(value)
     # the goal sampler's draws are indices on its index's device, which TorchRL 0.14.1's HER cannot mix with
-    # its CPU episode bounds: with the sampler on, auto keeps the memory on the CPU
-    return torch.device("cpu") if cfg.replay_buffer.sampler.enabled else train_device(cfg)
+    # its CPU episode bounds, and the recall transform queries the memory from the envs on the CPU: with either
+    # on, auto keeps the memory on the CPU (each drawn batch is copied over, pinned, without blocking)
+    on_cpu = cfg.replay_buffer.sampler.enabled or cfg.memory.recall.enabled
+    return torch.device("cpu") if on_cpu else train_device(cfg)
 
 
 def to_device(batch: TensorDictBase, device: torch.device) -> TensorDictBase:
