@@ -111,7 +111,7 @@ class PriorMix:
         parts = []
         if batch_size - n_prior:
             batch = self._own(batch_size - n_prior, query).select(*self.keys, strict=False)
-            batch.set(PRIOR_KEY, torch.zeros(batch.shape, dtype=torch.bool))
+            batch.set(PRIOR_KEY, torch.zeros(batch.shape, dtype=torch.bool, device=_device_of(batch)))
             parts.append(batch)
         if n_prior:
             counts = torch.distributions.Multinomial(n_prior, self._weights).sample().long().tolist()
@@ -119,7 +119,7 @@ class PriorMix:
                 if k:
                     batch = cast_rows(buffer.sample(k).select(*self.keys, strict=False), self.dtypes)
                     batch.set(("next", "reward"), self.reward_fn(batch))  # the current task's reward
-                    batch.set(PRIOR_KEY, torch.ones(batch.shape, dtype=torch.bool))
+                    batch.set(PRIOR_KEY, torch.ones(batch.shape, dtype=torch.bool, device=_device_of(batch)))
                     parts.append(batch)
         return torch.cat(parts, 0)
 
@@ -129,3 +129,8 @@ class PriorMix:
             with sampler.query(query):
                 return self.own.sample(n)
         return self.own.sample(n)
+
+
+def _device_of(batch: TensorDictBase) -> torch.device:
+    """Where a batch's rows are (a memory on the GPU draws them there): the device of its first tensor."""
+    return next(iter(batch.values(True, True))).device
