@@ -145,7 +145,7 @@ stage tests 120 tests.log "$PY" -m pytest -q --maxfail=3 --durations=15 -p no:ca
 
 # d2. opening a 1M-row memory on 16 cores (the issue's <= 0.5 s goal), against LazyMemmapStorage's reopen
 OPEN_ROWS=1000000; [ "$DRY" = 1 ] && OPEN_ROWS=100000
-stage open 100 bench.log "$PY" benchmarks/bench_open.py --rows "$OPEN_ROWS" --repeat 3
+stage open 120 bench.log "$PY" benchmarks/bench_open.py --rows "$OPEN_ROWS" --repeat 3
 
 # d. FetchPush on the CPU cores: 8 envs in worker processes vs 1 env, same threads, 400 frames a batch
 WORKER=(env=push device=cpu collector.frames_per_batch=400 logger.eval_iter=100000
