@@ -105,9 +105,9 @@ def make_storage(cfg: DictConfig, path: str, device: torch.device | None = None)
 def memory_device(cfg: DictConfig) -> torch.device:
     """``replay_buffer.device``: where the memory's rows are held and batches drawn.
 
-    ``auto``: the training device (the CPU with the goal sampler or recall). On CUDA, ``ZarrStorage(device="cuda")`` keeps its RAM
-    mirror on the GPU (the store stays on disk): batches are drawn, relabelled and
-    rewarded there, with no host-to-device copy per update.
+    ``auto``: the training device (the CPU with the goal sampler or recall). On CUDA,
+    ``ZarrStorage(device="cuda")`` keeps its RAM mirror on the GPU (the store stays on disk):
+    batches are drawn, relabelled and rewarded there, with no host-to-device copy per update.
     """
     value = str(cfg.replay_buffer.get("device", "cpu") or "cpu")
     if value != "auto":
@@ -205,8 +205,10 @@ def current_goals(collector: Collector, data: TensorDictBase) -> torch.Tensor:
 
 
 def make_environment(cfg: DictConfig, memory=None):
-    """Train env (``env.num_envs``, in worker processes with ``env.parallel``) and eval env (one env per episode)."""
-    check_env_batch(cfg)
+    """Train env (``env.num_envs``, in worker processes with ``env.parallel``) and eval env (one env per episode).
+
+    ``train.py`` has checked the collection batch against the envs (:func:`check_env_batch`) before opening the memory.
+    """
     train = make_task_env(cfg, cfg.env.num_envs, cfg.seed, memory, parallel=bool(cfg.env.get("parallel", False)))
     return train, make_eval_env(cfg, cfg.logger.eval_episodes, memory)
 
