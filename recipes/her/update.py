@@ -81,7 +81,8 @@ class Updater:
         compile_backend (str): ``torch.compile``'s ``backend``. Default: ``"inductor"``.
         cudagraphs (bool): capture each variant in a ``tensordict.nn.CudaGraphModule``
             (CUDA only; the optimiser must be ``capturable``). Default: ``False``.
-        warmup (int): eager calls of a variant before it is compiled / captured. Default: 5.
+        warmup (int): calls of a variant before it is compiled (eager) or captured (the warm-up of
+            ``CudaGraphModule``, at least 2: one eager call, then compiled ones). Default: 5.
 
     Example:
         >>> updater = Updater(terms, optimizer, SoftUpdate(loss_module, eps=0.995))
@@ -135,14 +136,16 @@ class Updater:
             fn = functools.partial(self.step, train_actor=train_actor, move_targets=move_targets)
             if self.compile:
                 options = {"mode": self.compile_mode} if self.compile_backend == "inductor" else {}
+                # under CUDA graphs, compile on the first warm-up call after one eager call (as TorchRL's sota
+                # SAC does): compiling must be done before the graph is captured, never during the capture
                 fn = _after_warmup(fn, functools.partial(torch.compile, backend=self.compile_backend, **options),
-                                   self.warmup)
+                                   1 if self.cudagraphs else self.warmup)
             if self.cudagraphs:
                 from tensordict.nn import CudaGraphModule
 
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", UserWarning)  # "experimental": tests/test_cuda.py checks it
-                    fn = CudaGraphModule(fn, in_keys=[], out_keys=[], warmup=self.warmup)
+                    fn = CudaGraphModule(fn, in_keys=[], out_keys=[], warmup=max(self.warmup, 2))
             self._variants[key] = fn
         return fn
 
