@@ -74,5 +74,8 @@ def failures(checkpoint: str, overrides: list[str]) -> dict:
 if __name__ == "__main__":
     if len(sys.argv) < 2:
         sys.exit(__doc__)
+    if sys.argv[1] in ("-h", "--help"):  # not a checkpoint path
+        print(__doc__)
+        sys.exit(0)
     for key, value in failures(sys.argv[1], sys.argv[2:]).items():
         print(f"{key}: {value}")
