@@ -165,7 +165,9 @@ def test_draw_batches_mixes_relabelled_rows_into_every_batch(tmp_path):
     assert len(batches) == 10 and all(b.shape == torch.Size([32]) for b in batches)
     relabelled = [int((b["desired_goal"] != 0).any(-1).sum()) for b in batches]
     assert sum(relabelled) == int(320 * cfg.replay_buffer.her_ratio)
-    assert all(0 < r < 32 for r in relabelled), relabelled  # unshuffled: the first 8 batches 32, the last two 0
+    # unshuffled, the first 8 batches would be all relabelled and the last two none; shuffled, a batch is
+    # mixed unless its 32 rows all fall on one side (p < 1e-3 a batch, so all ten pure: p < 1e-30)
+    assert any(0 < r < 32 for r in relabelled), relabelled
     # each row keeps the reward HER gave it for its (new) goal: relabelled before the shuffle, rows kept whole
     reward_fn = utils.make_reward_fn(cfg.env.name)
     for b in batches:
@@ -192,14 +194,14 @@ def test_recipe_parallel_envs_store_whole_episodes(tmp_path):
     """env.num_envs=2 env.parallel=true: two worker processes; each env's episodes lie contiguous in the memory."""
     mem = tmp_path / "m.zarr"
     s = run_recipe(tmp_path, "env.num_envs=2", "env.parallel=true", "collector.frames_per_batch=100",
-                   "collector.total_frames=200", "collector.init_random_frames=100", "logger.eval_iter=200",
+                   "collector.total_frames=100", "collector.init_random_frames=50", "logger.eval_iter=100",
                    f"memory.path={mem}")
-    assert s["frames"] == 200 and s["memory_rows_after"] == 200
+    assert s["frames"] == 100 and s["memory_rows_after"] == 100 and s["updates"] > 0
     with ZarrStorage(mem, read_only=True) as storage:
-        rows = storage[0:200]
-    steps = rows["step_count"].reshape(4, 50)
-    assert torch.equal(steps, torch.arange(50).expand(4, 50)), "an episode was cut apart in the memory"
-    assert rows["next", "done"].reshape(4, 50)[:, -1].all() and not rows["next", "done"].reshape(4, 50)[:, :-1].any()
+        rows = storage[0:100]
+    steps = rows["step_count"].reshape(2, 50)
+    assert torch.equal(steps, torch.arange(50).expand(2, 50)), "an episode was cut apart in the memory"
+    assert rows["next", "done"].reshape(2, 50)[:, -1].all() and not rows["next", "done"].reshape(2, 50)[:, :-1].any()
 
 
 def test_recipe_refuses_a_batch_that_cuts_episodes(tmp_path):
