@@ -1,0 +1,6 @@
+"""TorchRL samplers over a persistent storage, one kind a module (SLM Lab's memory kinds).
+
+- :mod:`~torchrl_robotmem.samplers.on_policy`: on-policy batch replay, the newest collected batch only.
+- :mod:`~torchrl_robotmem.samplers.combined`: combined experience replay, every batch holds the newest rows.
+- :mod:`~torchrl_robotmem.samplers.prioritized`: prioritized replay whose priorities persist in the store.
+"""
