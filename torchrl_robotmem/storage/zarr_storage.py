@@ -16,6 +16,7 @@ from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
 from . import compat, lifecycle, loader
 from .checkpointer import ZarrCheckpointer
+from .format import RESERVED
 from .indices import HostIndices
 from .planner import check_rows, completes_chunk, cursor_rows, last_index, plan_write, write_span
 from .schema import DataKind
@@ -23,7 +24,7 @@ from .state import rows_of_state, source_kind, state_rows
 from .store import MemoryStore
 from .tags import TAG_KEYS, UNKNOWN_ENV
 
-__all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS"]
+__all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS", "component_group"]
 
 
 
@@ -432,3 +433,41 @@ def _open_read_only(path: str, storage_options: dict | None, device: str) -> Zar
     storage = ZarrStorage(path, read_only=True, storage_options=storage_options, device=device)
     storage._handle.received = True  # a pickled copy: writing through it gets the advice of check_writable
     return storage
+
+
+def component_group(storage: ZarrStorage, name: str, *, write: bool = False) -> Any | None:
+    """The Zarr group ``name`` of ``storage``'s store in which a component (a sampler) keeps its own state.
+
+    ``name`` is a reserved top-level name (it starts with ``_``, and is not the store's own ``_journal`` or
+    ``_repair_backup``): no stored column can use it, and ``robotmem verify`` / ``copy`` / ``repair`` and a
+    reopen leave it alone. ``write=True`` first checks that this handle may write (not read-only, not
+    closed, not handed over: the error says what to do), then creates the group if it is missing;
+    otherwise the group is returned only if it exists (``None`` if not).
+
+    Args:
+        storage (ZarrStorage): the open storage.
+        name (str): the group's name, e.g. ``"_priority"``.
+
+    Keyword Args:
+        write (bool, optional): the caller will write into the group. Defaults to ``False``.
+
+    Example:
+        >>> import tempfile, torch
+        >>> from tensordict import TensorDict
+        >>> path = tempfile.mkdtemp() + "/memory.zarr"
+        >>> with ZarrStorage(path, 100) as storage:
+        ...     storage.set(torch.arange(4), TensorDict({"obs": torch.ones(4, 3)}, [4]))
+        ...     component_group(storage, "_doc") is None, component_group(storage, "_doc", write=True).path
+        (True, '_doc')
+    """
+    if not isinstance(name, str) or not name.startswith("_") or "/" in name or name in RESERVED:
+        raise ValueError(f"component_group name must be one top-level name starting with '_' (not one of "
+                         f"{RESERVED}, the store's own folders), got {name!r}.")
+    if write:
+        storage._store.check_writable()
+        return storage._handle.group.require_group(name)
+    try:
+        node = storage._handle.group[name]
+    except KeyError:
+        return None
+    return node if hasattr(node, "require_group") else None
