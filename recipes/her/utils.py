@@ -129,10 +129,17 @@ def to_device(batch: TensorDictBase, device: torch.device) -> TensorDictBase:
 
 
 def make_sampler(cfg: DictConfig):
-    """A :class:`~torchrl_robotmem.GoalSimilaritySampler` when enabled, else ``None`` (uniform)."""
-    if not cfg.replay_buffer.sampler.enabled:
-        return None
-    return _build(cfg.replay_buffer.sampler)
+    """A :class:`~torchrl_robotmem.GoalSimilaritySampler` when enabled, else ``None`` (uniform).
+
+    ``replay_buffer.combined``: wrapped in combined experience replay, every batch holding the
+    ``env.num_envs`` newest rows (:mod:`torchrl_robotmem.samplers.combined`).
+    """
+    sampler = _build(cfg.replay_buffer.sampler) if cfg.replay_buffer.sampler.enabled else None
+    if cfg.replay_buffer.get("combined", False):
+        from torchrl_robotmem.samplers.combined import CombinedExperienceSampler
+
+        sampler = CombinedExperienceSampler(sampler, newest=int(cfg.env.num_envs))
+    return sampler
 
 
 def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int | None = -1) -> HERReplayBuffer:

@@ -361,8 +361,12 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
             raise RuntimeError("every stored row has priority 0 (with eps=0): there is nothing to draw.")
         mass = torch.rand(batch_size, generator=self._rng, dtype=torch.float64) * total
         index = self._table.draw(mass).clamp_max_(len(storage) - 1)
-        weight = (self._table.weights[index] / p_min) ** (-self._beta)
-        return index, {"priority_weight": weight.to(self.dtype)}
+        return index, {"priority_weight": self.importance_weight(index)}
+
+    def importance_weight(self, index) -> torch.Tensor:
+        """The importance weights ``(w_i / min w) ** -beta`` of rows ``index``, as :meth:`sample` gives them."""
+        index = torch.as_tensor(index, dtype=torch.long).cpu()
+        return ((self._table.weights[index] / self._table.minimum()) ** (-self._beta)).to(self.dtype)
 
     def extend(self, index) -> None:
         return None
