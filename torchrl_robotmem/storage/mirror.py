@@ -163,9 +163,15 @@ class RamMirror:
     def mark_done(self, rows: torch.Tensor) -> torch.Tensor:
         """Sets ``("next", "done")`` and ``("next", "truncated")`` (if stored) on flat ``rows``.
 
+        So does every other stored ``("next", ..., "done" | "truncated")`` leaf: a multi-agent
+        env's per-agent flags (``("next", "agents", "done")`` ``[..., n_agents, 1]``) end with
+        the episode, as TorchRL's envs set them.
+
         Returns the first-dimension rows written, for the commit engine to mark dirty.
         """
-        for key in (DONE_KEY, TRUNCATED_KEY):
+        nested = [k for k in self.views.keys(True, True) if isinstance(k, tuple) and len(k) > 2 and k[0] == "next"
+                  and k[-1] in ("done", "truncated")]
+        for key in (DONE_KEY, TRUNCATED_KEY, *nested):
             if key == DONE_KEY or key in self.views.keys(True, True):
                 col = self.views.get(key)
                 (col.reshape(-1, *col.shape[self.ndim:]) if self.ndim > 1 else col)[rows] = True
