@@ -117,7 +117,7 @@ def test_memory_round_trip_with_agent_dims_and_resume(tmp_path):
 
 
 def _run_recipe(tmp_path: Path, out: str, *overrides: str) -> dict:
-    tiny = ["collector.total_frames=200", "collector.frames_per_batch=100", "collector.init_random_frames=100",
+    tiny = ["collector.total_frames=200", "collector.frames_per_batch=100", "collector.init_random_frames=150",
             "env.max_episode_steps=50", "train.minibatch_size=32", "train.updates_per_batch=5",
             "model.num_cells=16", "eval.episodes=1", "exploration.annealing_frames=400"]
     proc = subprocess.run(
@@ -133,7 +133,7 @@ def test_maddpg_recipe_trains_on_the_memory_and_resumes(tmp_path):
     first = _run_recipe(tmp_path, "one")
     assert first["algo"] == "HetMADDPG" and first["frames"] == 200
     assert first["memory_rows_before"] == 0 and first["memory_rows_after"] == 200
-    assert first["updates"] == 5  # the first batch is random warm-up: updates start at 100 rows
+    assert first["updates"] == 5  # the first batch is random warm-up: updates start at 150 rows
     assert first["memory_runs"] == [0] and first["memory_episodes"] == 4
     assert (tmp_path / "mem.zarr-agent.pt").is_file()
     second = _run_recipe(tmp_path, "two", "memory.resume_agent=true", "memory.pretrain_updates=3")
