@@ -92,8 +92,10 @@ class OnPolicyBatchSampler(Sampler):
         >>> path = tempfile.mkdtemp() + "/onpolicy.zarr"
         >>> rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 1000, env="FetchReach-v4"),
         ...                             sampler=OnPolicyBatchSampler(epochs=2), batch_size=4)
-        >>> _ = rb.extend(TensorDict({"obs": torch.arange(10.)}, [10]))    # an older batch
-        >>> _ = rb.extend(TensorDict({"obs": torch.arange(10., 16.)}, [6]))  # the newest
+        >>> def rows(a, b):  # transitions a..b-1 (with the success flag the memory keeps)
+        ...     return TensorDict({"obs": torch.arange(a, b).float(), ("next", "is_success"): torch.zeros(b - a)}, [b - a])
+        >>> _ = rb.extend(rows(0, 10))                    # an older batch
+        >>> _ = rb.extend(rows(10, 16))                   # the newest
         >>> epoch = [b["obs"] for b in rb]                # one pass: minibatches of 4 and 2
         >>> [len(x) for x in epoch], sorted(torch.cat(epoch).tolist())
         ([4, 2], [10.0, 11.0, 12.0, 13.0, 14.0, 15.0])
