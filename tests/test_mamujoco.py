@@ -62,7 +62,9 @@ def _fresh(*args: str) -> None:
 
 def _dumped(tmp_path: Path, store: Path, name: str) -> dict:
     _fresh("dump", str(store), str(tmp_path / name))
-    return torch.load(tmp_path / name, weights_only=True)["leaves"]
+    saved = torch.load(tmp_path / name, weights_only=True)
+    assert saved["agents_batch"] == [len(saved["leaves"]["episode"]), 2]  # the group's agent dim, read back
+    return saved["leaves"]
 
 
 def test_env_specs_and_agent_dims():
@@ -114,6 +116,22 @@ def test_memory_round_trip_with_agent_dims_and_resume(tmp_path):
     # new episodes get new ids: 7 came before (0-6), the new session's start at 7
     assert two["episode"][200:].tolist() == [7 + i // STEPS for i in range(100)]
     assert two["agents/observation"][200:].shape == (100, 2, 12)
+
+
+def test_sampled_groups_keep_their_agent_dim(tmp_path):
+    """As with LazyTensorStorage, a sampled batch's ("agents") TensorDict has batch [B, n_agents]."""
+    from torchrl.data import TensorDictReplayBuffer
+
+    from torchrl_robotmem.storage.zarr_storage import ZarrStorage
+
+    data = collect(str(tmp_path / "ma.zarr"), 100, seed=0)
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(tmp_path / "ma.zarr", read_only=True), batch_size=8)
+    batch = rb.sample()
+    assert batch["agents"].batch_size == batch["next", "agents"].batch_size == (8, 2)
+    assert batch["collector"].batch_size == (8,)
+    assert rb.storage[5]["agents"].batch_size == (2,)
+    assert torch.equal(batch["agents", "observation"], data["agents", "observation"][batch["index"]])
+    assert torch.equal(batch["agents"][:, 1]["action"], data["agents", "action"][batch["index"], 1])
 
 
 def _run_recipe(tmp_path: Path, out: str, *overrides: str) -> dict:

@@ -62,7 +62,8 @@ class DataKind:
             return cls("tensor")
         if is_tensor_collection(data):
             if isinstance(data, TensorDictBase):
-                return cls("tensordict")
+                groups = cls.groups_of(data)
+                return cls("tensordict", {"groups": groups} if groups else None)
             klass = type(data)
             return cls("tensorclass", {"class": f"{klass.__module__}.{klass.__qualname__}"}, klass)
         leaves, spec = tree_flatten(data)
@@ -72,6 +73,37 @@ class DataKind:
                 f"{type(data).__name__} with leaves {sorted({type(x).__name__ for x in leaves})}."
             )
         return cls("pytree", {"treespec": treespec_dumps(spec)})
+
+    @staticmethod
+    def groups_of(data: TensorDictBase) -> dict[str, int]:
+        """Nested TensorDicts with batch dims of their own: ``{path: extra dims}``.
+
+        A multi-agent group (``data["agents"]``, batch ``[*B, n_agents]`` under a
+        ``[*B]`` root) is stored leaf by leaf; this record lets reads give the group
+        its batch dims back (:meth:`with_groups`), as ``LazyTensorStorage`` keeps them.
+
+        Example:
+            >>> td = TensorDict({"agents": TensorDict({"obs": torch.zeros(4, 2, 3)}, [4, 2])}, [4])
+            >>> DataKind.groups_of(td)
+            {'agents': 1}
+        """
+        out = {}
+        for key, value in data.items(include_nested=True):
+            if type(value) is TensorDict and value.batch_dims > data.batch_dims:
+                out[_backend.key_to_path(key)] = value.batch_dims - data.batch_dims
+        return out
+
+    def with_groups(self, td: TensorDictBase) -> TensorDictBase:
+        """``td`` (rows read back) with the batch dims of each group :meth:`groups_of` recorded, in place."""
+        groups = self.meta.get("groups") if self.kind == "tensordict" else None
+        for path, extra in sorted((groups or {}).items(), key=lambda kv: kv[0].count("/")):
+            sub = td.get(_backend.path_to_key(path), None)
+            if type(sub) is not TensorDict or sub.batch_dims != td.batch_dims:
+                continue
+            leaves = [v for v in sub.values(True, True) if isinstance(v, torch.Tensor)]
+            if leaves:
+                sub.batch_size = leaves[0].shape[: td.batch_dims + int(extra)]
+        return td
 
     def to_json(self) -> dict:
         return {"kind": self.kind, **self.meta}
@@ -84,7 +116,11 @@ class DataKind:
         return cls(value.pop("kind"), value)
 
     def same_as(self, other: DataKind) -> bool:
-        return self.kind == other.kind and self.meta == other.meta
+        """Same kind and structure (the batch dims of nested groups may differ: they are read back as first stored)."""
+        def strip(meta: dict) -> dict:
+            return {k: v for k, v in meta.items() if k != "groups"}
+
+        return self.kind == other.kind and strip(self.meta) == strip(other.meta)
 
     def to_tensordict(self, data: Any, batch_dims: int) -> TensorDictBase:
         if self.kind == "tensordict":

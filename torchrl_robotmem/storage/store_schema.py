@@ -147,4 +147,4 @@ class StoreSchema:
         """Rows read from the mirror, with the constants, as the store's data kind."""
         if self.constants:
             rows = with_constants(rows, self.constants)
-        return self.kind.from_tensordict(rows)
+        return self.kind.from_tensordict(self.kind.with_groups(rows))
