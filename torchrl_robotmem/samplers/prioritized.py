@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import threading
 import time
 import warnings
@@ -140,14 +141,25 @@ def _write_state(storage: ZarrStorage, name: str, raw: torch.Tensor, chunks: set
 
 _LIVE: weakref.WeakSet = weakref.WeakSet()
 _HOOKED = False
+_EXITING = False
 
 
 def _persist_all_at_exit() -> None:
+    global _EXITING
+    _EXITING = True
     for sampler in list(_LIVE):
         try:
             sampler.flush()
         except Exception as err:  # noqa: BLE001 - report, never raise at exit
-            warnings.warn(f"could not write the priorities of {sampler!r} at exit: {err}", stacklevel=1)
+            _report(f"the priorities of {sampler!r} changed since they were last written are lost "
+                             f"({err}). Call sampler.flush() before closing its storage.")
+
+
+def _report(msg: str) -> None:
+    try:
+        sys.stderr.write(f"torchrl_robotmem: {msg}\n")
+    except Exception:  # noqa: BLE001 - stderr may be gone at exit
+        pass
 
 
 def _hook_exit(sampler: PersistentPrioritizedSampler) -> None:
@@ -464,8 +476,9 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
         if not self._persistent or storage is None or not (self._dirty or self._meta_dirty(storage)):
             return
         storage.flush()  # the rows first: the priorities then describe committed rows
-        record = storage.record()
-        attrs = {"len": int(record["len"]), "cursor": int(record["cursor"]), "write_count": int(record["write_count"]),
+        last = getattr(storage, "_last_cursor_index", None)  # TorchRL's last written row (the writer's next: +1)
+        cursor = 0 if last is None or int(last) < 0 else (int(last) + 1) % self._max_capacity
+        attrs = {"len": len(storage), "cursor": cursor, "write_count": int(storage.write_count),
                  "max_priority": self._top, "alpha": self._alpha, "beta": self._beta, "eps": self._eps}
         _write_state(storage, self.name, self._raw, self._dirty, attrs)
         self._dirty = set()
@@ -475,8 +488,15 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
         return getattr(self, "_written", None) != (storage.write_count, self._top)
 
     def close(self) -> None:
-        """Writes the priorities (as :meth:`flush`); the sampler stays usable."""
-        self.flush()
+        """Writes the priorities (as :meth:`flush`) if the storage is still open; the sampler stays usable.
+
+        (At interpreter exit this runs after the exit hook, which already warned about a storage closed first.)
+        """
+        try:
+            self.flush()
+        except RuntimeError:
+            if not _EXITING:
+                raise
 
     def state_dict(self) -> dict[str, Any]:
         """The priorities and parameters (the store gets them too, when attached to one)."""
