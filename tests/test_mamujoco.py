@@ -84,6 +84,9 @@ def test_env_specs_and_agent_dims():
     ends = td["next", "done"].squeeze(-1).nonzero().flatten().tolist()
     assert ends == [STEPS - 1]
     assert td["next", "agents", "truncated"][STEPS - 1].all() and not td["next", "agents", "terminated"].any()
+    with_info = make_mamujoco_env("HalfCheetah", "2x3", max_episode_steps=STEPS, seed=0, info_keys=["x_velocity"])
+    check_env_specs(with_info)  # the kept info keys are read at every step
+    assert with_info.rollout(3)["next", "agents", "info", "x_velocity"].shape == (3, 2)
 
 
 def test_memory_round_trip_with_agent_dims_and_resume(tmp_path):
