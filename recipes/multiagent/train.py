@@ -81,12 +81,14 @@ def main(cfg: DictConfig) -> None:
     pretrain_s = time.perf_counter() - t0
     init_random = 0 if len(rb) >= ready or frames_before else cfg.collector.init_random_frames
     collector = utils.make_collector(cfg, policy_explore, cfg.collector.total_frames, init_random)
-    frames, collect_s, train_s, train_returns = 0, 0.0, 0.0, []
+    frames, collect_s, extend_s, train_s, train_returns = 0, 0.0, 0.0, 0.0, []
     t_collect = time.perf_counter()
     for data in collector:
-        collect_s += time.perf_counter() - t_collect
+        t_extend = time.perf_counter()
+        collect_s += t_extend - t_collect
         frames += data.numel()
         rb.extend(data.reshape(-1))
+        extend_s += time.perf_counter() - t_extend
         done = data["next", "done"].squeeze(-1)
         train_returns += data["next", utils.GROUP, "episode_reward"].mean(-2)[done].flatten().tolist()
         t_train, metrics = time.perf_counter(), {}
@@ -112,9 +114,9 @@ def main(cfg: DictConfig) -> None:
         "frames": frames, "agent_frames_before": frames_before, "memory_rows_before": rows_before,
         "memory_rows_after": len(rb), "updates": updates, "pretrain_s": round(pretrain_s, 2),
         "return_before": return_before, "return_after": return_after, "train_episode_returns": train_returns,
-        "collect_s": round(collect_s, 2), "train_s": round(train_s, 2),
+        "collect_s": round(collect_s, 2), "extend_s": round(extend_s, 3), "train_s": round(train_s, 2),
         "collect_fps": round(frames / max(collect_s, 1e-9), 1),
-        "fps": round(frames / max(collect_s + train_s, 1e-9), 1), **_memory_tags(rb.storage),
+        "fps": round(frames / max(collect_s + extend_s + train_s, 1e-9), 1), **_memory_tags(rb.storage),
     }
     if logger is not None:
         logger.log_metrics({"eval/return_before": return_before, "eval/return_after": return_after}, step=frames)
