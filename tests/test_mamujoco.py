@@ -137,12 +137,12 @@ def test_sampled_groups_keep_their_agent_dim(tmp_path):
     assert torch.equal(batch["agents"][:, 1]["action"], data["agents", "action"][batch["index"], 1])
 
 
-def _run_recipe(tmp_path: Path, out: str, *overrides: str) -> dict:
+def _run_recipe(tmp_path: Path, out: str, *overrides: str, memory: str = "mem.zarr") -> dict:
     tiny = ["collector.total_frames=200", "collector.frames_per_batch=100", "collector.init_random_frames=150",
             "env.max_episode_steps=50", "train.minibatch_size=32", "train.updates_per_batch=5",
             "model.num_cells=16", "eval.episodes=1", "exploration.annealing_frames=400"]
     proc = subprocess.run(
-        [sys.executable, str(RECIPE), *tiny, f"memory.path={tmp_path / 'mem.zarr'}", *overrides,
+        [sys.executable, str(RECIPE), *tiny, f"memory.path={tmp_path / memory}", *overrides,
          f"hydra.run.dir={tmp_path / out}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )
@@ -164,6 +164,17 @@ def test_maddpg_recipe_trains_on_the_memory_and_resumes(tmp_path):
     assert second["memory_runs"] == [0, 1] and second["memory_episodes"] == 8
     scalars = next((tmp_path / "two" / "multiagent_logging").glob("*/scalars"))
     assert (scalars / "loss_value.csv").read_text().splitlines()[-1].startswith("200,")
+
+
+def test_maddpg_on_zarr_storage_trains_as_on_lazy_tensor_storage(tmp_path):
+    """The memory is a drop-in replay storage: same seed, same batches, same networks, same returns."""
+    zarr = _run_recipe(tmp_path, "zarr")
+    lazy = _run_recipe(tmp_path, "lazy", "replay_buffer.storage._target_=torchrl.data.LazyTensorStorage",
+                       memory="lazy.zarr")
+    assert lazy["updates"] == zarr["updates"] == 5
+    assert lazy["return_after"] == zarr["return_after"]
+    assert lazy["train_episode_returns"] == zarr["train_episode_returns"]
+    assert "memory_runs" not in lazy and not (tmp_path / "lazy.zarr").exists()  # nothing persisted
 
 
 if __name__ == "__main__":
