@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 from _rows import fetch_rows
+from _s3 import s3_server, s3_url  # noqa: F401  (pytest fixtures)
 from torchrl.data import HERReplayBuffer, LazyTensorStorage, PrioritizedSampler, TensorDictReplayBuffer
 
 from torchrl_robotmem import GoalSimilaritySampler, ZarrStorage
@@ -247,6 +248,20 @@ def test_verify_inspect_copy_and_reopen_tolerate_the_stored_priorities(tmp_path,
         assert len(storage) == 100 and "_priority" not in storage[:2].keys()
 
 
+def test_priorities_persist_in_an_object_store(s3_url, s3_server):  # noqa: F811
+    opts = s3_server.storage_options
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(s3_url, 200, storage_options=opts),
+                                sampler=PersistentPrioritizedSampler(), batch_size=8)
+    rb.extend(_rows(50))
+    rb.update_priority(torch.arange(50), torch.linspace(0.5, 5.0, 50))
+    rb.sampler.flush()
+    rb.storage.close()
+    with ZarrStorage(s3_url, read_only=True, storage_options=opts) as storage:
+        sampler = PersistentPrioritizedSampler()
+        sampler.sample(storage, 4)
+        assert torch.equal(sampler.priority, torch.linspace(0.5, 5.0, 50))
+
+
 def test_state_dict_and_dumps_round_trip(tmp_path):
     src = PersistentPrioritizedSampler(alpha=0.6, beta=0.4)
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(64), sampler=src, batch_size=8)
@@ -260,3 +275,11 @@ def test_state_dict_and_dumps_round_trip(tmp_path):
     assert torch.equal(dst.priority, src.priority) and dst.default_priority == src.default_priority
     dst.load_state_dict(src.state_dict())
     assert torch.equal(dst.priority, src.priority)
+
+
+def test_her_recipe_with_combined_replay_over_the_goal_sampler(tmp_path):
+    from test_recipes import run_recipe
+
+    s = run_recipe(tmp_path, "replay_buffer.combined=true", "replay_buffer.sampler.enabled=true",
+                   f"memory.path={tmp_path / 'mem.zarr'}")
+    assert s["memory_rows_after"] == 50 and s["updates"] > 0
