@@ -87,7 +87,9 @@ def main(cfg: DictConfig) -> None:
         t_extend = time.perf_counter()
         collect_s += t_extend - t_collect
         frames += data.numel()
-        rb.extend(data.reshape(-1))
+        # the actor's ("agents", "param") is an intermediate (= the action before noise): not kept, and
+        # the warm-up's random batches lack it, so keeping it would add a column to the memory mid-run
+        rb.extend(data.reshape(-1).exclude((utils.GROUP, "param")))
         extend_s += time.perf_counter() - t_extend
         done = data["next", "done"].squeeze(-1)
         train_returns += data["next", utils.GROUP, "episode_reward"].mean(-2)[done].flatten().tolist()
