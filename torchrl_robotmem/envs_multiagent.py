@@ -33,7 +33,7 @@ try:
     from pettingzoo.utils import BaseParallelWrapper
 except ImportError as err:  # pragma: no cover - pettingzoo is an optional dependency
     raise ImportError(
-        "torchrl_robotmem.envs_multiagent needs pettingzoo (MaMuJoCo's PettingZoo API): pip install 'pettingzoo>=1.24'"
+        "torchrl_robotmem.envs_multiagent needs pettingzoo (MaMuJoCo's PettingZoo API): pip install 'pettingzoo>=1.23'"
     ) from err
 
 __all__ = ["FixedInfoKeys", "agent_names", "make_mamujoco_env"]
