@@ -134,6 +134,7 @@ def test_prioritized_samples_by_priority_with_torchrls_weights(tmp_path):
     # the TensorDictReplayBuffer flow: the priority key of a sampled batch
     rb.update_tensordict_priority(batch.set("td_error", torch.full((64,), 2.0)))
     assert torch.equal(rb.sampler.priority[batch["index"]], torch.full((64,), 2.0))
+    rb.sampler.flush()
     rb.storage.close()
 
 
@@ -191,10 +192,10 @@ def test_rows_committed_after_the_last_priority_write_get_the_max_priority(tmp_p
     rb.update_priority(torch.arange(100), torch.full((100,), 0.5))
     rb.update_priority(torch.tensor([0]), torch.tensor([3.0]))
     rb.sampler.flush()
-    # written with a plain buffer (no sampler): the stored priorities do not know these rows
-    plain = TensorDictReplayBuffer(storage=rb.storage, batch_size=8)
-    plain.extend(_rows(20, seed=1, start=100))
     rb.storage.close()
+    # a run without the sampler appends 20 rows: the stored priorities do not know them
+    with ZarrStorage(path) as storage:
+        TensorDictReplayBuffer(storage=storage, batch_size=8).extend(_rows(20, seed=1, start=100))
     reader = TensorDictReplayBuffer(storage=ZarrStorage(path, read_only=True),
                                     sampler=PersistentPrioritizedSampler(alpha=0.7, beta=0.5), batch_size=8)
     reader.sample()
@@ -229,7 +230,7 @@ def test_bad_priorities_raise_and_change_nothing(tmp_path, index, priority, erro
         assert torch.equal(sampler.priority, before)
 
 
-def test_verify_inspect_copy_and_reopen_tolerate_the_stored_priorities(tmp_path, capsys):
+def test_verify_inspect_repair_copy_and_reopen_tolerate_the_stored_priorities(tmp_path, capsys):
     path = tmp_path / "per.zarr"
     rb = _per(path, max_size=1000)
     rb.extend(_rows(100))
@@ -239,6 +240,7 @@ def test_verify_inspect_copy_and_reopen_tolerate_the_stored_priorities(tmp_path,
     assert (path / "_priority" / "priority" / "zarr.json").is_file()
     assert robotmem(["verify", str(path)]) == 0
     assert robotmem(["inspect", str(path)]) == 0
+    assert robotmem(["repair", str(path)]) == 0 and "nothing to repair" in capsys.readouterr().out
     assert robotmem(["copy", str(path), str(tmp_path / "copy.zarr")]) == 0
     assert "intact" in capsys.readouterr().out
     with ZarrStorage(tmp_path / "copy.zarr", read_only=True) as storage:  # the copy keeps the priorities

@@ -192,7 +192,9 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
     on SIGTERM and at interpreter exit; the first contact with the storage reads them back. Rows written
     after the last priority write get the max priority. A read-only storage samples with the stored
     priorities and writes none. Over any other storage the priorities live in RAM (and in
-    ``state_dict`` / ``dumps``).
+    ``state_dict`` / ``dumps``). A buffer built over a store that holds rows gives every row the default
+    priority (TorchRL's ``ReplayBuffer._initialize_prioritized_sampler``); the sampler skips that fill
+    when it read the priorities from the store. Call :meth:`flush` before ``storage.close()``.
 
     Args:
         max_capacity (int, optional): rows; defaults to the storage's ``max_size`` at first contact.
