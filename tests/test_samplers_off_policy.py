@@ -277,6 +277,16 @@ def test_state_dict_and_dumps_round_trip(tmp_path):
     assert torch.equal(dst.priority, src.priority) and dst.default_priority == src.default_priority
     dst.load_state_dict(src.state_dict())
     assert torch.equal(dst.priority, src.priority)
+    # a resumed buffer checkpointed again at a new path (pytorch/rl #4388), and a new prioritized buffer on
+    # the loaded storage (#3120): every row at the default priority, as TorchRL's fill gives it
+    rb2.dumps(tmp_path / "ckpt2")
+    third = PersistentPrioritizedSampler(alpha=0.6, beta=0.4)
+    rb3 = TensorDictReplayBuffer(storage=LazyTensorStorage(64), sampler=third, batch_size=8)
+    rb3.loads(tmp_path / "ckpt2")
+    rb3.sample()
+    assert torch.equal(third.priority, src.priority)
+    reuse = TensorDictReplayBuffer(storage=rb2.storage, sampler=PersistentPrioritizedSampler(), batch_size=8)
+    assert reuse.sample()["priority_weight"].eq(1.0).all() and reuse.sampler.priority.eq(1.0).all()
 
 
 def test_her_recipe_with_combined_replay_over_the_goal_sampler(tmp_path):
