@@ -341,6 +341,7 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
             self._load(storage)
             self._persistent = not storage.read_only
             if self._persistent:
+                self._last_persist = time.monotonic()  # the first periodic write persist_interval from now
                 _hook_exit(self)
 
     def _load(self, storage: ZarrStorage) -> None:
