@@ -134,14 +134,13 @@ class OnPolicyBatchSampler(Sampler):
         else:  # writes with no draw in between: one batch
             self._batch = torch.cat([self._batch, index])
         # a storage smaller than the batch wraps around: a later write over the same slot wins
-        last = torch.zeros(len(self._batch), dtype=torch.bool)
-        seen: set[int] = set()
-        for pos in range(len(self._batch) - 1, -1, -1):
-            slot = int(self._batch[pos])
-            if slot not in seen:
-                seen.add(slot)
-                last[pos] = True
-        self._valid = last.nonzero().squeeze(-1)
+        slots, inverse = torch.unique(self._batch, return_inverse=True)
+        positions = torch.arange(len(self._batch))
+        if len(slots) == len(self._batch):
+            self._valid = positions
+        else:  # each slot's last position in the batch
+            last = torch.full((len(slots),), -1, dtype=torch.long).scatter_reduce(0, inverse, positions, reduce="amax")
+            self._valid = last.sort().values
         self._order, self._epoch, self._drawn, self._ran_out = None, 0, False, False
         self._remaining_batches = int(torch.iinfo(torch.int64).max)
 
