@@ -103,8 +103,11 @@ def test_memory_round_trip_with_agent_dims_and_resume(tmp_path):
     assert one["episode"].tolist() == [i // STEPS for i in range(200)]
     assert one["run"].tolist() == [0] * 200
 
-    _fresh("collect", str(store), "100", "1")  # a second session in a fresh process appends
-    two = _dumped(tmp_path, store, "two.pt")
+    # a second session in a fresh process appends, then reads the store back (read-only) after closing it
+    _fresh("collect", str(store), "100", "1", str(tmp_path / "two.pt"))
+    saved = torch.load(tmp_path / "two.pt", weights_only=True)
+    two = saved["leaves"]
+    assert saved["agents_batch"] == [300, 2]
     assert two["run"].tolist() == [0] * 200 + [1] * 100
     for name, value in one.items():  # the old rows are untouched except the open episode's end
         if name in ("next/done", "next/truncated", "next/agents/done", "next/agents/truncated"):
@@ -180,6 +183,8 @@ def test_maddpg_on_zarr_storage_trains_as_on_lazy_tensor_storage(tmp_path):
 if __name__ == "__main__":
     command, *rest = sys.argv[1:]
     if command == "collect":
-        collect(*rest)
+        collect(*rest[:3])
+        if len(rest) > 3:
+            dump(rest[0], rest[3])
     else:
         dump(*rest)
