@@ -185,6 +185,19 @@ def test_priorities_persist_bit_equal_across_a_fresh_process(tmp_path):
         assert sampler.priority[0] == 7.0 and torch.equal(sampler.priority[1:2000], expected[1:])
 
 
+def test_closing_the_storage_writes_the_priorities(tmp_path):
+    path = tmp_path / "per.zarr"
+    rb = _per(path, max_size=1000)
+    rb.extend(_rows(100))
+    rb.update_priority(torch.arange(100), torch.linspace(0.1, 9.0, 100))
+    expected = rb.sampler.priority.clone()
+    rb.storage.close()  # no sampler.flush(): the storage's close writes them first
+    with ZarrStorage(path, read_only=True) as storage:
+        sampler = PersistentPrioritizedSampler(alpha=0.7, beta=0.5)
+        sampler.sample(storage, 4)
+        assert torch.equal(sampler.priority[:100], expected[:100])
+
+
 def test_rows_committed_after_the_last_priority_write_get_the_max_priority(tmp_path):
     path = tmp_path / "per.zarr"
     rb = _per(path, max_size=1000)

@@ -37,6 +37,7 @@ def test_storage_does_not_import_the_package_root():
 # package also happens to define. Each is in docs/storage.md's table of other libraries' private names.
 OTHER_LIBRARIES = {
     ("torchrl_robotmem.storage.columns", "_storage"),  # TorchRL's TensorStorage._storage (the rows)
+    ("torchrl_robotmem.samplers.combined", "_empty"),  # TorchRL's Sampler._empty (rb.empty() calls it)
 }
 
 

@@ -6,6 +6,8 @@ Public surface:
 - :class:`GoalIndex` and :func:`recall`: exact nearest-goal lookup over a storage
   (package :mod:`torchrl_robotmem.goal_index`).
 - :class:`GoalSimilaritySampler`: a TorchRL sampler drawing rows near query goals.
+- :class:`OnPolicyBatchSampler`, :class:`CombinedExperienceSampler`, :class:`PersistentPrioritizedSampler`:
+  SLM Lab's memory kinds over a persistent storage (package :mod:`torchrl_robotmem.samplers`).
 - :class:`RecallTransform`: an env transform appending the nearest remembered goals.
 - :class:`RobotMemory`: robotmem's quick-start API over the same store.
 - :func:`make_env` / :func:`make_reward_fn`: Fetch / Shadow Hand envs and HER rewards.
@@ -17,12 +19,16 @@ from .envs import make_env, make_reward_fn
 from .goal_index import GoalIndex, recall
 from .memory import RobotMemory
 from .sampler import GoalSimilaritySampler
+from .samplers import CombinedExperienceSampler, OnPolicyBatchSampler, PersistentPrioritizedSampler
 from .storage import ZarrStorage
 from .transform import RecallTransform
 
 __all__ = [
+    "CombinedExperienceSampler",
     "GoalIndex",
     "GoalSimilaritySampler",
+    "OnPolicyBatchSampler",
+    "PersistentPrioritizedSampler",
     "RecallTransform",
     "RobotMemory",
     "ZarrStorage",

@@ -4,3 +4,11 @@
 - :mod:`~torchrl_robotmem.samplers.combined`: combined experience replay, every batch holds the newest rows.
 - :mod:`~torchrl_robotmem.samplers.prioritized`: prioritized replay whose priorities persist in the store.
 """
+from __future__ import annotations
+
+from .combined import CombinedExperienceSampler, newest_rows
+from .on_policy import OnPolicyBatchSampler
+from .prioritized import PersistentPrioritizedSampler, PriorityTable
+
+__all__ = ["CombinedExperienceSampler", "OnPolicyBatchSampler", "PersistentPrioritizedSampler", "PriorityTable",
+           "newest_rows"]

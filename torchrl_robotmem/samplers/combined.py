@@ -15,8 +15,6 @@ from torchrl.data.replay_buffers.samplers import RandomSampler, Sampler
 
 __all__ = ["CombinedExperienceSampler", "newest_rows"]
 
-_EMPTY = "_empty"  # TorchRL's Sampler API (rb.empty() calls sampler._empty()), not a private name of this package
-
 
 def newest_rows(storage, k: int) -> torch.Tensor:
     """The ``k`` newest rows of ``storage`` (oldest first), ending at the last written row, across a ring's wrap.
@@ -183,7 +181,7 @@ class CombinedExperienceSampler(Sampler):
 
     def _empty(self) -> None:
         self._latest = None
-        getattr(self.base, _EMPTY)()
+        self.base._empty()  # TorchRL's Sampler API: rb.empty() calls sampler._empty()
 
     # -- state ----------------------------------------------------------------------------------
 

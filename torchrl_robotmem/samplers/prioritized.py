@@ -25,7 +25,7 @@ import torch
 from torchrl.data.replay_buffers.samplers import PrioritizedSampler
 
 from torchrl_robotmem.storage import lifecycle
-from torchrl_robotmem.storage.zarr_storage import ZarrStorage, component_group
+from torchrl_robotmem.storage.zarr_storage import ZarrStorage, component_group, flush_before_close
 
 __all__ = ["PersistentPrioritizedSampler", "PriorityTable"]
 
@@ -194,7 +194,7 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
     priorities and writes none. Over any other storage the priorities live in RAM (and in
     ``state_dict`` / ``dumps``). A buffer built over a store that holds rows gives every row the default
     priority (TorchRL's ``ReplayBuffer._initialize_prioritized_sampler``); the sampler skips that fill
-    when it read the priorities from the store. Call :meth:`flush` before ``storage.close()``.
+    when it read the priorities from the store. ``storage.close()`` writes them first.
 
     Args:
         max_capacity (int, optional): rows; defaults to the storage's ``max_size`` at first contact.
@@ -343,6 +343,7 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
             if self._persistent:
                 self._last_persist = time.monotonic()  # the first periodic write persist_interval from now
                 _hook_exit(self)
+                flush_before_close(storage, self.flush)  # storage.close() writes the priorities first
 
     def _load(self, storage: ZarrStorage) -> None:
         n, cap = min(len(storage), self._max_capacity), self._max_capacity

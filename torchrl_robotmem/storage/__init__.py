@@ -3,7 +3,8 @@
 One job a module, as TorchRL splits storages, writers and checkpointers
 (``docs/storage.md``, "Map of storage/", says which way a write and an open go):
 
-* :mod:`.zarr_storage`: :class:`ZarrStorage`, the TorchRL ``Storage`` contract, a composition of
+* :mod:`.zarr_storage`: :class:`ZarrStorage`, the TorchRL ``Storage`` contract (and the reserved groups
+  components such as a sampler keep their state in: ``component_group``, ``flush_before_close``), a composition of
 * :mod:`.handle`: the store handle (store, group, writer lock, format check, in-process handover);
 * :mod:`.loader`: the steps of an open and a reader's refresh (record, growth, journal, rows into the mirror);
 * :mod:`.planner`: a write validated and normalised into a plan, without side effects;
@@ -33,9 +34,9 @@ from ._backend import (  # the store helpers cli/ and memory.py use, public here
     torch_dtype,
 )
 from .tags import TAG_KEYS
-from .zarr_storage import ZarrCheckpointer, ZarrStorage
+from .zarr_storage import ZarrCheckpointer, ZarrStorage, component_group, flush_before_close
 
 __all__ = [
-    "TAG_KEYS", "ZarrCheckpointer", "ZarrStorage", "is_url", "key_to_path", "normalize_path", "path_to_key",
+    "TAG_KEYS", "ZarrCheckpointer", "ZarrStorage", "component_group", "flush_before_close", "is_url", "key_to_path", "normalize_path", "path_to_key",
     "store_exists", "store_size_bytes", "torch_dtype",
 ]

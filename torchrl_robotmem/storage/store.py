@@ -51,6 +51,7 @@ class MemoryStore:
         self.cursor = 0
         self.restored_writers: weakref.WeakSet | None = None  # set once the store is open
         self.context_checked = False  # a success column and an env name: checked at this handle's first write
+        self.before_close: list[Callable[[], Any]] = []  # components' flushes (weak methods), run first on close
 
     def claim(self):
         """A writer takes the store's writer lock; returns the earlier handle of this process it took over, if any."""
@@ -203,6 +204,7 @@ class MemoryStore:
         """
         if self.handle.closed:
             return
+        self.close_components()
         try:
             with lifecycle.critical():
                 self.flush()
@@ -213,6 +215,23 @@ class MemoryStore:
             raise
         finally:
             self.release()
+
+    def close_components(self) -> None:
+        """Runs the components' flushes registered in ``before_close`` (a sampler's priorities), each once.
+
+        A component that fails is reported with a warning naming it: the rows are closed all the same.
+        """
+        hooks, self.before_close = self.before_close, []
+        for ref in hooks:
+            flush = ref()
+            if flush is None:
+                continue
+            try:
+                flush()
+            except Exception as err:  # noqa: BLE001 - the rows still close; say what was not written
+                warnings.warn(f"closing the store at {self.handle.path!r}: {flush!r} failed ({err!r}); the state it "
+                              "kept since it was last written is lost, the rows are not.", RuntimeWarning,
+                              stacklevel=user_stacklevel())
 
     def release(self) -> None:
         self.handle.closed = True

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import weakref
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -24,7 +26,7 @@ from .state import rows_of_state, source_kind, state_rows
 from .store import MemoryStore
 from .tags import TAG_KEYS, UNKNOWN_ENV
 
-__all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS", "component_group"]
+__all__ = ["ZarrStorage", "ZarrCheckpointer", "TAG_KEYS", "component_group", "flush_before_close"]
 
 
 
@@ -471,3 +473,34 @@ def component_group(storage: ZarrStorage, name: str, *, write: bool = False) -> 
     except KeyError:
         return None
     return node if hasattr(node, "require_group") else None
+
+
+def flush_before_close(storage: ZarrStorage, flush: Callable[[], Any]) -> None:
+    """Has ``storage.close()`` call ``flush`` (a bound method: held weakly) before it commits its last rows.
+
+    A component that keeps state in the store (:func:`component_group`), such as a sampler's priorities,
+    registers its write here, so that closing the storage loses none of it. A failing ``flush`` is reported
+    with a warning and the rows still close. A read-only or closed storage ignores the call.
+
+    Args:
+        storage (ZarrStorage): the open storage.
+        flush (callable): a bound method taking no argument.
+
+    Example:
+        >>> import tempfile, torch
+        >>> from tensordict import TensorDict
+        >>> class Counter:
+        ...     calls = 0
+        ...     def flush(self):
+        ...         Counter.calls += 1
+        >>> counter = Counter()
+        >>> storage = ZarrStorage(tempfile.mkdtemp() + "/memory.zarr", 100)
+        >>> storage.set(torch.arange(4), TensorDict({"obs": torch.ones(4, 3)}, [4]))
+        >>> flush_before_close(storage, counter.flush)
+        >>> storage.close(); storage.close()
+        >>> Counter.calls
+        1
+    """
+    if storage._store.read_only or storage._handle.closed:
+        return
+    storage._store.before_close.append(weakref.WeakMethod(flush))
