@@ -8,7 +8,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint bench clean
+.PHONY: install demo test test-full lint bench clean
 
 install: $(STAMP)
 
@@ -33,6 +33,11 @@ PYTEST_ARGS ?= -n 2 --durations=25
 test: install
 	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# everything, the tests marked `full` too (second tests of capabilities the default tier covers: about
+# 6 more minutes); every landing runs it. `make test-full PYTEST_ARGS="-n 2 -m full"`: those alone.
+test-full: install
+	ROBOTMEM_FULL=1 $(MAKE) --no-print-directory test
 
 lint: install
 	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools

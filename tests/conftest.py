@@ -46,8 +46,28 @@ def _seed_every_test(request):
     request.node.stash[_SEED_KEY] = seed
 
 
+FULL_ENV = "ROBOTMEM_FULL"
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", f"full: a second test of a capability the default tier already covers, a minute or so; "
+        f"runs with {FULL_ENV}=1 (make test-full), which every landing runs too")
+
+
+def pytest_collection_modifyitems(config, items):
+    if os.environ.get(FULL_ENV) == "1":
+        return
+    skip = pytest.mark.skip(reason=f"full tier: {FULL_ENV}=1 or make test-full (make test stays under 15 minutes)")
+    for item in items:
+        if item.get_closest_marker("full") is not None:
+            item.add_marker(skip)
+
+
 def pytest_report_header(config):
-    return f"{TEST_SEED_ENV}={suite_seed()} (random, numpy and torch are seeded with it before every test)"
+    tier = "full" if os.environ.get(FULL_ENV) == "1" else f"default (the full tier: {FULL_ENV}=1)"
+    return (f"{TEST_SEED_ENV}={suite_seed()} (random, numpy and torch are seeded with it before every test); "
+            f"tier: {tier}")
 
 
 @pytest.hookimpl(hookwrapper=True)

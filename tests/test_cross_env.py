@@ -37,6 +37,7 @@ def test_mcnemar_uses_discordant_pairs_only():
         mcnemar([1], [1, 0])
 
 
+@pytest.mark.full
 def test_cross_env_command_end_to_end(tmp_path):
     out = tmp_path / "out"
     res = run.main([

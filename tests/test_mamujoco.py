@@ -12,6 +12,7 @@ import warnings
 from functools import partial
 from pathlib import Path
 
+import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,6 +170,7 @@ def test_maddpg_recipe_trains_on_the_memory_and_resumes(tmp_path):
     assert (scalars / "loss_value.csv").read_text().splitlines()[-1].startswith("200,")
 
 
+@pytest.mark.full
 def test_maddpg_on_zarr_storage_trains_as_on_lazy_tensor_storage(tmp_path):
     """The memory is a drop-in replay storage: same seed, same batches, same networks, same returns."""
     zarr = _run_recipe(tmp_path, "zarr")

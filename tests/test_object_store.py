@@ -232,6 +232,7 @@ def _reopen_writer(url: str, so: dict, deadline_s: float = 20.0) -> ZarrStorage:
             time.sleep(0.2)
 
 
+@pytest.mark.full
 def test_reader_while_writer_appends_then_sigkill_mid_commit(s3_url, s3_server, monkeypatch):
     so = s3_server.storage_options
     monkeypatch.setenv("TORCHRL_ROBOTMEM_LEASE_TTL", "1")
@@ -323,6 +324,7 @@ storage.close()
 '''
 
 
+@pytest.mark.full
 def test_chunks_written_by_another_process_after_a_listing_are_read(s3_url, s3_server):
     """A listing made in this process never hides chunk files another process wrote later.
 

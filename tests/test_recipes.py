@@ -191,6 +191,7 @@ def _saved_normalizer(agent: Path, overrides: list[str]):
     return normalizer
 
 
+@pytest.mark.full
 def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     """prior.paths: a scripted FetchPush memory, read-only, half of every batch (issue 9)."""
     from recipes.scripted.collect import main as collect
@@ -431,7 +432,7 @@ def test_prior_bc_clones_the_prior_actions_where_the_critics_prefer_them(tmp_pat
     assert actor_error() < 0.5 * before
 
 
-@pytest.mark.parametrize("algo", ["sac", "td3"])
+@pytest.mark.parametrize("algo", ["sac", pytest.param("td3", marks=pytest.mark.full)])
 def test_crr_actor_loss_regresses_onto_the_better_stored_actions(tmp_path, algo):
     """prior.actor_update=crr (prior_memory.CRRActorLoss): the actor's loss has no critic gradient, only filtered regression."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -467,6 +468,7 @@ def test_crr_actor_loss_regresses_onto_the_better_stored_actions(tmp_path, algo)
     assert proc.returncode != 0 and "prior.actor_update must be q_gradient or crr" in proc.stderr
 
 
+@pytest.mark.full
 def test_clone_anchor_keeps_the_actor_near_the_clone(tmp_path):
     """prior.clone_anchor (prior_memory.CloneAnchor): a trust region around the cloned actor's own outputs."""
     from recipes.her.prior_memory import CloneAnchor

@@ -367,6 +367,7 @@ def test_sigkill_append_store(tmp_path):
     assert not tracker.ring
 
 
+@pytest.mark.full
 @pytest.mark.timeout(600)
 def test_sigkill_ring_store(tmp_path):
     """A small ring (300 rows, chunks of 64: the last chunk is partial) wrapping many times."""
