@@ -212,6 +212,17 @@ def test_the_memory_is_a_her_recipe_memory(tmp_path):
         env.close()
         storage.close()
 
+    # and PPO recalls from it as another run's memory (memory.recall.memory=<path>, read-only)
+    from recipes.ppo.utils import make_task_env
+
+    with initialize_config_dir(str(PPO_DIR), version_base="1.3"):
+        ppo_cfg = compose("config", overrides=["memory.recall.enabled=true", f"memory.recall.memory={mem}"])
+    recall_env = make_task_env(ppo_cfg, 1, seed=0)
+    try:
+        assert recall_env.reset()["prior_goals_mask"].all()  # 5 remembered goals found
+    finally:
+        recall_env.close()
+
 
 def test_episodes_must_be_whole_with_several_envs():
     from hydra import compose, initialize_config_dir
