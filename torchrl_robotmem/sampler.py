@@ -10,10 +10,8 @@ before sampling, the way TorchRL's ``StalenessAwareSampler`` is steered by its
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,6 +23,7 @@ from torchrl.data.replay_buffers.storages import Storage
 from torchrl_robotmem.goal_index import GoalIndex, RowFilter
 from torchrl_robotmem.goal_index.metrics import GoalMetric
 from torchrl_robotmem.goal_index.tracking import live_column
+from torchrl_robotmem.samplers.json_state import JsonStateDumps
 
 _UNIFORM = RandomSampler()  # TorchRL's uniform draw: the storage's own indices (ZarrStorage: on the CPU)
 
@@ -41,7 +40,7 @@ def _key_from_json(key) -> NestedKey:
     return tuple(key) if isinstance(key, list) else key
 
 
-class GoalSimilaritySampler(Sampler):
+class GoalSimilaritySampler(JsonStateDumps, Sampler):
     """Samples transitions whose achieved goals are near query goals.
 
     Without a query it samples uniformly, like :class:`~torchrl.data.RandomSampler`,
@@ -332,16 +331,6 @@ class GoalSimilaritySampler(Sampler):
             self.clear_query()
         else:
             self.set_query(query)
-
-    def dumps(self, path) -> None:
-        path = Path(path)
-        path.mkdir(parents=True, exist_ok=True)
-        with open(path / "sampler_metadata.json", "w") as f:
-            json.dump(self.state_dict(), f)
-
-    def loads(self, path) -> None:
-        with open(Path(path) / "sampler_metadata.json") as f:
-            self.load_state_dict(json.load(f))
 
     def __repr__(self) -> str:
         q = None if self._query is None else tuple(self._query.shape)

@@ -11,13 +11,13 @@ replacement, for a fixed number of epochs, as TorchRL's sota PPO does with a
 """
 from __future__ import annotations
 
-import json
-from pathlib import Path
 from typing import Any
 
 import torch
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
+
+from torchrl_robotmem.samplers.json_state import JsonStateDumps
 
 __all__ = ["OnPolicyBatchSampler"]
 
@@ -37,7 +37,7 @@ def _as_index(index, what: str) -> torch.Tensor:
     return index.to("cpu", torch.long)
 
 
-class OnPolicyBatchSampler(Sampler):
+class OnPolicyBatchSampler(JsonStateDumps, Sampler):
     """Draws minibatches, without replacement, from the rows of the newest write only, for ``epochs`` epochs.
 
     The sampler learns the newest rows from the buffer's ``extend`` / ``add``
@@ -265,16 +265,6 @@ class OnPolicyBatchSampler(Sampler):
         self._check_config()
         self._batch, self._valid, self._order = batch, valid, order
         self._epoch, self._drawn, self._ran_out = epoch, bool(state_dict["drawn"]), bool(state_dict["ran_out"])
-
-    def dumps(self, path) -> None:
-        path = Path(path)
-        path.mkdir(parents=True, exist_ok=True)
-        with open(path / "sampler_metadata.json", "w") as f:
-            json.dump(self.state_dict(), f)
-
-    def loads(self, path) -> None:
-        with open(Path(path) / "sampler_metadata.json") as f:
-            self.load_state_dict(json.load(f))
 
     def __repr__(self) -> str:
         left = 0 if self._order is None else len(self._order)
