@@ -295,3 +295,23 @@ def test_pickled_into_another_process_it_is_a_read_only_handle(tmp_path):
     assert read_only and n == 6 and obs == [0, 1, 2, 3, 4, 5]
     assert "read_only" in err
     st.close()
+
+
+def test_a_subclass_with_its_own_constructor_loads_another_stores_checkpoint(tmp_path):
+    """rb.loads builds the checkpoint's copy as a ZarrStorage, not as type(storage) (whose arguments may differ)."""
+    made = []
+
+    class Sized(ZarrStorage):  # a LazyTensorStorage-like signature: max_size first, the path chosen inside
+        def __init__(self, max_size, **kwargs):
+            made.append(tmp_path / f"store{len(made)}.zarr")
+            super().__init__(str(made[-1]), max_size, **kwargs)
+
+    rows = TensorDict({"obs": torch.arange(20.0).reshape(10, 2)}, [10])
+    rb = ReplayBuffer(storage=Sized(100))
+    rb.extend(rows)
+    rb.dumps(tmp_path / "checkpoint")
+    other = ReplayBuffer(storage=Sized(100))
+    other.loads(tmp_path / "checkpoint")
+    assert len(other) == 10 and torch.equal(other.storage[:10]["obs"], rows["obs"])
+    rb.storage.close()
+    other.storage.close()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,16 @@ def _link_tree(src: Path, dst: Path) -> None:
 
 
 class ZarrCheckpointer(StorageCheckpointerBase):
-    """Checkpointer for :class:`~torchrl_robotmem.ZarrStorage` (see the module docstring)."""
+    """Checkpointer for :class:`~torchrl_robotmem.ZarrStorage` (see the module docstring).
+
+    Args:
+        open_copy (callable, optional): opens a checkpoint's copy of a store read-only (``path -> storage``);
+            ``ZarrStorage`` passes one building a ``ZarrStorage`` itself, so that subclasses with other
+            constructor signatures load checkpoints too. Defaults to ``type(storage)(path, read_only=True)``.
+    """
+
+    def __init__(self, open_copy: Callable[[Path], Any] | None = None) -> None:
+        self.open_copy = open_copy
 
     def dumps(self, storage: Any, path: str | os.PathLike) -> None:
         storage.flush()
@@ -73,5 +83,8 @@ class ZarrCheckpointer(StorageCheckpointerBase):
                 f"the buffer's storage is {storage.path!r}. Build the buffer with "
                 f"ZarrStorage({meta['store']!r}) to resume from it."
             )
-        source = type(storage)(path / meta["copy"], read_only=True)
+        if self.open_copy is not None:
+            source = self.open_copy(path / meta["copy"])
+        else:
+            source = type(storage)(path / meta["copy"], read_only=True)
         storage.load_state_dict(source.state_dict())

@@ -220,10 +220,11 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     @checkpointer.setter
     def checkpointer(self, value: StorageCheckpointerBase | None) -> None:
-        # ReplayBuffer._init sets the checkpointer right after registering its
-        # writer: the one place where the writer exists and can be restored.
+        # ReplayBuffer._init sets it right after registering its writer: where the writer can be restored
         if value is None or type(value) is StorageCheckpointerBase:
             value = ZarrCheckpointer()
+        if isinstance(value, ZarrCheckpointer):  # its copies open as a ZarrStorage, whatever subclass self is
+            value.open_copy = value.open_copy or _open_copy
         self._checkpointer = value
         if getattr(getattr(self, "_store", None), "restored_writers", None) is not None:
             self._store.restore_writers(self)
@@ -429,6 +430,11 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(path={self.path!r}, len={len(self)}, max_size={self.max_size}, "
                 f"read_only={self.read_only}, envs={list(self._tags.env_names)})")
+
+
+def _open_copy(path) -> ZarrStorage:
+    """A checkpoint's copy of a store, read-only (``ZarrCheckpointer.loads`` reads its rows)."""
+    return ZarrStorage(path, read_only=True)
 
 
 def _open_read_only(path: str, storage_options: dict | None, device: str) -> ZarrStorage:
