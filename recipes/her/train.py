@@ -209,7 +209,9 @@ def main(cfg: DictConfig) -> None:
     if cloned:
         bc_mse = terms.clone([b.storage for b in priors], cfg.prior.clone_steps, batch_size=cfg.optim.batch_size,
                              lr=cfg.optim.lr, seed=cfg.seed)
-        print(f"cloned the prior's actions into the actor: {cfg.prior.clone_steps} steps, mse {bc_mse:.4f}")
+        goals = (f"hindsight goals, horizon {cfg.prior.clone_horizon}" if cfg.prior.clone_goals == "hindsight"
+                 else "successful episodes, their own goals")
+        print(f"cloned the prior's actions into the actor: {cfg.prior.clone_steps} steps ({goals}), mse {bc_mse:.4f}")
     # Fresh networks on a memory that already holds transitions: learn from it first, until it has done its job
     pretrained = {"updates": 0, "checks": [], "stopped": None}
     if (remembered or mix is not None) and not resumed and cfg.memory.pretrain_updates:

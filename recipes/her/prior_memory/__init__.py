@@ -9,6 +9,8 @@ One job a module:
 * ``bc``: :class:`PriorBC` (Q-filtered behaviour cloning, ``prior.bc``),
   :class:`CRRActorLoss` (``prior.actor_update=crr``), :func:`pretrain_actor`
   and :func:`load_demos` (``prior.clone_steps``);
+* ``hindsight``: :class:`HindsightGoals`, every prior row aimed at what its
+  episode achieved a few steps on (``prior.clone_goals=hindsight``);
 * ``anchor``: :class:`CloneAnchor`, a trust region around the cloned actor
   (``prior.clone_anchor``);
 * ``schedules``: the annealed prior share and anchor weight;
@@ -23,6 +25,7 @@ directory is on ``sys.path``); the tools import ``recipes.her.prior_memory``.
 from .anchor import CloneAnchor
 from .bc import CRRActorLoss, PriorBC, load_demos, pretrain_actor
 from .builders import check_prior_config, check_prior_memories, make_prior_mix, make_prior_terms, step_schedules
+from .hindsight import HindsightGoals, episode_ids
 from .layout import cast_rows, check_prior_layout, describe_prior, prior_summary
 from .mix import PRIOR_KEY, TRANSITION_KEYS, PriorMix
 from .schedules import clone_anchor_weight, prior_ratio
@@ -33,6 +36,7 @@ __all__ = [
     "TRANSITION_KEYS",
     "CRRActorLoss",
     "CloneAnchor",
+    "HindsightGoals",
     "PriorBC",
     "PriorMix",
     "PriorTerms",
@@ -41,6 +45,7 @@ __all__ = [
     "check_prior_layout",
     "check_prior_memories",
     "describe_prior",
+    "episode_ids",
     "clone_anchor_weight",
     "load_demos",
     "make_prior_mix",

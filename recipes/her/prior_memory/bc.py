@@ -34,6 +34,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
 from .actor_critic import ActorCritic, loss_device
+from .hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, episode_ids
 from .layout import cast_rows
 from .mix import PRIOR_KEY
 
@@ -134,6 +135,7 @@ def pretrain_actor(
     success_only: bool = True,
     seed: int = 0,
     demos: TensorDictBase | None = None,
+    horizon: int = 0,
 ) -> float:
     """Clone the prior memories' actions into the actor before any RL update (behaviour cloning).
 
@@ -153,6 +155,9 @@ def pretrain_actor(
         success_only (bool): only the rows of successful episodes (when the memory says which).
         seed (int): seed of the row draws.
         demos (TensorDictBase, optional): the rows of :func:`load_demos`, when already read.
+        horizon (int): ``> 0``: hindsight goals (``prior.clone_goals=hindsight``): every row, its goal
+            replaced at each draw by an achieved goal of its episode at most ``horizon`` steps on
+            (:class:`~.hindsight.HindsightGoals`; ``demos`` from ``load_demos(..., hindsight=True)``).
 
     Returns:
         the mean squared error of the last 100 steps.
@@ -163,7 +168,7 @@ def pretrain_actor(
     """
     actor = loss_module.actor_network
     action_key = getattr(loss_module.tensor_keys, "action", "action")
-    data = demos if demos is not None else load_demos(loss_module, storages, success_only)
+    data = demos if demos is not None else load_demos(loss_module, storages, success_only, hindsight=horizon > 0)
     low, high = -1.0, 1.0
     spec = getattr(actor, "spec", None)
     if spec is not None and action_key in spec.keys():
@@ -172,11 +177,12 @@ def pretrain_actor(
     params = loss_module.actor_network_params
     opt = torch.optim.Adam(list(params.values(True, True)), lr=lr)
     gen = torch.Generator().manual_seed(seed)
+    draw = HindsightGoals(data, horizon, generator=gen) if horizon > 0 else data.__getitem__
     losses = []
     for _ in tqdm.trange(steps, desc="cloning the prior's actions", leave=False):
         idx = torch.randint(data.shape[0], (batch_size,), generator=gen)
         with set_exploration_type(ExplorationType.DETERMINISTIC), params.to_module(actor):
-            pi = actor(data[idx].exclude(action_key)).get(action_key)
+            pi = actor(draw(idx).exclude(action_key)).get(action_key)
         loss = (pi - target[idx]).pow(2).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -187,29 +193,38 @@ def pretrain_actor(
 
 
 def load_demos(loss_module: LossModule, storages: list, success_only: bool = True,
-               dtypes: dict | None = None) -> TensorDictBase:
+               dtypes: dict | None = None, hindsight: bool = False) -> TensorDictBase:
     """The prior memories' rows an actor can imitate: what the actor reads and the action, original goals.
 
     ``success_only`` keeps the episodes whose ``episode_success`` is set, where the memory records it;
     ``dtypes`` (``{key: dtype}``, :func:`~.layout.check_prior_layout`) casts the keys a prior stores
-    in another floating dtype (float64 from a raw Gymnasium env) to the run's.
+    in another floating dtype (float64 from a raw Gymnasium env) to the run's. ``hindsight``: every
+    row (``success_only`` ignored), with ``("next", "achieved_goal")`` and an episode number
+    (:data:`~.hindsight.EPISODE_KEY`, unique across the memories) for :class:`~.hindsight.HindsightGoals`.
 
     Example:
         >>> demos = load_demos(loss_module, [ZarrStorage("memory/scripted/push.zarr", read_only=True)])
     """
     actor = loss_module.actor_network
     action_key = getattr(loss_module.tensor_keys, "action", "action")
-    keys = [*actor.in_keys, action_key]
-    parts = []
+    keys = [*actor.in_keys, action_key, *([ACHIEVED_KEY] if hindsight else [])]
+    parts, episodes = [], 0
     for storage in storages:
         rows = storage[: len(storage)]
-        if success_only and "episode_success" in rows.keys():
+        if hindsight:
+            ids = episode_ids(rows)
+            ids = torch.unique(ids, return_inverse=True)[1] + episodes  # 0.. within a memory, then offset
+            episodes = int(ids.max()) + 1 if ids.numel() else episodes
+        if success_only and not hindsight and "episode_success" in rows.keys():
             rows = rows[rows.get("episode_success").reshape(rows.shape[0]) > 0.5]
         missing = [k for k in keys if k not in rows.keys(True)]
         if missing:
             raise KeyError(f"a prior memory holds no {missing}: the actor reads {actor.in_keys} "
                            "(prior.clone_steps, prior.bc_original_goals).")
-        parts.append(cast_rows(rows.select(*keys).clone(), dtypes))
+        part = cast_rows(rows.select(*keys).clone(), dtypes)
+        if hindsight:
+            part.set(EPISODE_KEY, ids)
+        parts.append(part)
     data = torch.cat(parts, 0) if len(parts) > 1 else parts[0]
     if not data.shape[0]:
         raise ValueError("no prior rows to imitate (no successful episodes in prior.paths?).")

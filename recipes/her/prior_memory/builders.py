@@ -16,6 +16,7 @@ from .terms import PriorTerms
 __all__ = ["check_prior_config", "check_prior_memories", "make_prior_mix", "make_prior_terms", "step_schedules"]
 
 ACTOR_UPDATES = ("q_gradient", "crr")
+CLONE_GOALS = ("original", "hindsight")
 
 
 def check_prior_config(cfg: DictConfig) -> None:
@@ -23,6 +24,17 @@ def check_prior_config(cfg: DictConfig) -> None:
     prior = cfg.prior
     if prior.actor_update not in ACTOR_UPDATES:
         raise ValueError(f"prior.actor_update must be q_gradient or crr, got {prior.actor_update!r}.")
+    if prior.clone_goals not in CLONE_GOALS:
+        raise ValueError(f"prior.clone_goals must be original or hindsight, got {prior.clone_goals!r}.")
+    if prior.clone_goals == "hindsight":
+        if prior.clone_horizon < 1:
+            raise ValueError(f"prior.clone_horizon must be >= 1 (1: the next achieved goal), got {prior.clone_horizon}.")
+        if prior.bc and prior.bc_original_goals:
+            raise ValueError("prior.clone_goals=hindsight clones every prior row, failed episodes too: "
+                             "prior.bc_original_goals=true would imitate them with their own goals. Set one of them.")
+        if cfg.memory.recall.enabled:
+            raise ValueError("prior.clone_goals=hindsight relabels the goals the actor reads, and the recalled "
+                             "prior_goals of a row belong to its own goal: set memory.recall.enabled=false.")
     if prior.clone_anchor and not prior.clone_steps:
         raise ValueError("prior.clone_anchor keeps the actor near the one cloned by prior.clone_steps: "
                          "set prior.clone_steps=N (and prior.paths=[path, ...]) too, or use prior=clone.")
@@ -95,7 +107,8 @@ def make_prior_terms(cfg: DictConfig, loss_module: LossModule, keys: tuple, prio
     prior = cfg.prior
     demos = None  # the prior's successful rows with their own goals, read once for cloning and BC
     if prior.clone_steps or (prior.bc and prior.bc_original_goals):
-        demos = load_demos(loss_module, [b.storage for b in priors], dtypes=dtypes)
+        demos = load_demos(loss_module, [b.storage for b in priors], dtypes=dtypes,
+                           hindsight=prior.clone_goals == "hindsight")
     bc = None
     if prior.bc:
         bc = PriorBC(loss_module, prior.bc, q_filter=prior.bc_q_filter,
@@ -104,7 +117,9 @@ def make_prior_terms(cfg: DictConfig, loss_module: LossModule, keys: tuple, prio
     if prior.clone_anchor:
         anchor = CloneAnchor(loss_module, prior.clone_anchor)
         anchor.weight = clone_anchor_weight(cfg, 0)  # raises on a schedule end <= 0
-    return PriorTerms(loss_module, keys, bc=bc, crr=prior.actor_update == "crr", anchor=anchor, demos=demos)
+    horizon = prior.clone_horizon if prior.clone_goals == "hindsight" else 0
+    return PriorTerms(loss_module, keys, bc=bc, crr=prior.actor_update == "crr", anchor=anchor, demos=demos,
+                      clone_horizon=horizon)
 
 
 def step_schedules(cfg: DictConfig, frames: int, mix: PriorMix | None, anchor: CloneAnchor | None) -> dict:

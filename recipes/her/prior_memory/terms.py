@@ -36,6 +36,8 @@ class PriorTerms:
         crr (bool): the actor's loss is :class:`CRRActorLoss` (``prior.actor_update=crr``).
         anchor (CloneAnchor, optional): the trust region around the clone (``prior.clone_anchor``).
         demos (TensorDictBase, optional): the prior rows :meth:`clone` imitates (``bc.load_demos``).
+        clone_horizon (int): ``> 0``: :meth:`clone` relabels each row's goal with one its episode achieved
+            at most this many steps on (``prior.clone_goals=hindsight``, ``hindsight.HindsightGoals``).
 
     Example:
         >>> terms = PriorTerms(loss_module, ("loss_actor", "loss_qvalue"), bc=PriorBC(loss_module, 0.4))
@@ -44,8 +46,9 @@ class PriorTerms:
     """
 
     def __init__(self, loss_module: LossModule, keys: tuple, *, bc: PriorBC | None = None, crr: bool = False,
-                 anchor: CloneAnchor | None = None, demos: TensorDictBase | None = None) -> None:
-        self.loss_module, self.keys = loss_module, tuple(keys)
+                 anchor: CloneAnchor | None = None, demos: TensorDictBase | None = None,
+                 clone_horizon: int = 0) -> None:
+        self.loss_module, self.keys, self.clone_horizon = loss_module, tuple(keys), int(clone_horizon)
         self.bc, self.anchor, self.demos = bc, anchor, demos
         self.crr = CRRActorLoss(loss_module) if crr else None
         device = loss_device(loss_module)
@@ -79,7 +82,7 @@ class PriorTerms:
     def clone(self, storages: list, steps: int, batch_size: int, lr: float, seed: int) -> float:
         """Clone the prior's actions into the actor (``prior.clone_steps``); the anchor then holds that clone."""
         mse = pretrain_actor(self.loss_module, storages, steps, batch_size=batch_size, lr=lr, seed=seed,
-                             demos=self.demos)
+                             demos=self.demos, horizon=self.clone_horizon)
         if self.anchor is not None:
             self.anchor.reset()
         return mse
