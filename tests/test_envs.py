@@ -64,6 +64,24 @@ def test_serial_batched_specs_seeding_and_outer_transforms():
         env.close()
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_closing_a_batched_env_keeps_the_thread_count(threads):
+    """A run on N torch threads that closes an evaluation SerialEnv mid-run goes on with N threads."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        env = make_env("FetchReach-v4", num_envs=5, seed=0)
+        env.rollout(2)
+        env.close()
+        assert torch.get_num_threads() == threads
+        with pytest.raises(RuntimeError, match="closed"):  # still TorchRL's close: a second one is refused
+            env.close()
+        env.close(raise_if_closed=False)
+        assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_seed_reproducible():
     goals = []
     for _ in range(2):

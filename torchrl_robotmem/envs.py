@@ -189,7 +189,37 @@ def _base_env(bare_id: str, num_envs: int, parallel: bool, device: str, gym_kwar
         return create()
     if parallel:
         return ParallelEnv(num_envs, EnvCreator(create), device=device)
-    return SerialEnv(num_envs, create, device=device)
+    return ThreadKeepingSerialEnv(num_envs, create, device=device)
+
+
+class ThreadKeepingSerialEnv(SerialEnv):
+    """A :class:`~torchrl.envs.SerialEnv` whose ``close()`` leaves torch's thread count as it found it.
+
+    TorchRL 0.14.1's ``BatchedEnvBase.close`` sets ``torch.set_num_threads(min(initial pool,
+    current + num_workers))``, undoing what a ``ParallelEnv`` took at start. A ``SerialEnv`` took
+    nothing, so a process that runs on one torch thread (``torch.set_num_threads(1)``, as the
+    recipes do) and closes a 5-env evaluation ``SerialEnv`` goes on with 2 OpenMP threads. On a
+    busy 2-core machine that made a FetchSlide SAC run spend 3x the CPU per frame (the second
+    thread spins at an OpenMP barrier) and slowed the run beside it (docs/results.md, "FetchSlide").
+
+    Example:
+        >>> import torch
+        >>> from torchrl_robotmem.envs import make_env
+        >>> threads = torch.get_num_threads()
+        >>> torch.set_num_threads(1)
+        >>> make_env("FetchReach-v4", num_envs=2).close()
+        >>> torch.get_num_threads()
+        1
+        >>> torch.set_num_threads(threads)
+    """
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        threads = torch.get_num_threads()
+        try:
+            super().close(raise_if_closed=raise_if_closed)
+        finally:
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
 
 
 def make_env(
