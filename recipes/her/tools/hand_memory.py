@@ -1,0 +1,253 @@
+"""What a HandReach-v3 memory holds, and what cloning it with hindsight goals gives (docs/results.md, "Shadow Hand").
+
+Three measurements on the memory a ``recipes/her/train.py env=hand_reach`` run wrote:
+
+* ``cover``: for evaluation goals drawn as the env draws them (``reset(seed=10_000 + i)``),
+  the nearest achieved goal anywhere in the memory, by exact :func:`torchrl_robotmem.recall`:
+  does the memory already hold the pinches the agent is asked for?
+* ``clone``: hindsight inverse dynamics: an MLP regresses the stored action ``a_t`` on
+  ``(o_t, ag_{t+k})``, ``0 <= k < horizon`` within the episode, over every row, then acts
+  on ``(o, desired_goal)``; evaluated on 100 deterministic episodes (the same goals as ``cover``).
+  ``prior.clone_goals=hindsight`` does the same inside the recipe.
+* ``gcsl``: ``clone``, then rounds of 100 episodes collected with the clone plus Gaussian noise,
+  added to the data, and cloned again (goal-conditioned supervised learning, Ghosh et al. 2019).
+
+::
+
+    python -m recipes.her.tools.hand_memory cover bench_results/i27/hand_reach-s1.zarr
+    python -m recipes.her.tools.hand_memory clone bench_results/i27/hand_reach-s1.zarr --horizon 1 3 10
+    python -m recipes.her.tools.hand_memory gcsl bench_results/i27/hand_reach-s1.zarr --horizon 3 --rounds 5
+
+Each result is printed as one JSON line (and appended to ``--out``). ``plot`` draws the runs'
+evaluation curves (``--runs NAME=RUN_DIR``, each with its ``her_logging/*/scalars/eval/success_rate.csv``)
+and the clone / gcsl lines of ``--out`` placed at the frames of the memory they came from::
+
+    python -m recipes.her.tools.hand_memory plot bench_results/i27/hand_reach-s1.zarr \
+        --runs "SAC s0=bench_results/i27/hand_reach-s0-out" "SAC s1=bench_results/i27/hand_reach-s1-out" \
+        --out bench_results/i27/hand_memory.jsonl --png docs/img/hand_reach.png
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import gymnasium as gym
+import gymnasium_robotics
+import numpy as np
+import torch
+from torch import nn
+
+from recipes.her.prior_memory.hindsight import episode_ids
+from torchrl_robotmem import ZarrStorage, recall
+
+ENV = "HandReach-v3"
+EVAL_SEED = 10_000  # evaluation goals: reset(seed=EVAL_SEED + i)
+
+
+def read_rows(paths: list[str]) -> dict[str, torch.Tensor]:
+    """observation, action, next achieved goal and an episode number per row, of every memory in ``paths``."""
+    parts, offset = [], 0
+    for path in paths:
+        with ZarrStorage(path, read_only=True) as store:
+            rows = store[: len(store)]
+        ep = torch.unique(episode_ids(rows), return_inverse=True)[1] + offset
+        offset = int(ep.max()) + 1
+        parts.append({"obs": rows["observation"].float(), "act": rows["action"].float(),
+                      "ag": rows["next", "achieved_goal"].float(), "ep": ep})
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+
+def eval_goals(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` goals as the env draws them, and which of them are the rest pose (HandReach's 10%)."""
+    env = gym.make(ENV)
+    goals, rest = [], []
+    for i in range(n):
+        obs, _ = env.reset(seed=EVAL_SEED + i)
+        goals.append(obs["desired_goal"])
+        rest.append(np.linalg.norm(obs["desired_goal"] - obs["achieved_goal"]) < 0.02)
+    env.close()
+    return np.stack(goals), np.array(rest)
+
+
+def cover(paths: list[str], n: int = 200) -> dict:
+    """Distance from each evaluation goal to the nearest achieved goal in the memory (exact recall)."""
+    goals, rest = eval_goals(n)
+    dist = []
+    for path in paths:
+        with ZarrStorage(path, read_only=True) as store:
+            dist.append([float(recall(store, torch.as_tensor(g), k=1)["distance"][0]) for g in goals])
+    d = np.min(np.array(dist), axis=0)
+    pinch = d[~rest]
+    return {"what": "cover", "memories": paths, "pinch_goals": int((~rest).sum()),
+            "nearest_median": float(np.median(pinch)), "nearest_p10": float(np.quantile(pinch, 0.1)),
+            "within_0.01": float((pinch < 0.01).mean()), "within_0.02": float((pinch < 0.02).mean()),
+            "rest_within_0.01": float((d[rest] < 0.01).mean())}
+
+
+class InverseModel(nn.Module):
+    """a = pi(o, g): 3x256 ReLU MLP, tanh head, inputs standardised with the data's statistics."""
+
+    def __init__(self, data: dict[str, torch.Tensor]) -> None:
+        super().__init__()
+        obs_dim, goal_dim, act_dim = data["obs"].shape[-1], data["ag"].shape[-1], data["act"].shape[-1]
+        self.net = nn.Sequential(nn.Linear(obs_dim + goal_dim, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(),
+                                 nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, act_dim), nn.Tanh())
+        self.refresh(data)
+
+    def refresh(self, data: dict[str, torch.Tensor]) -> None:
+        self.stats = [(x.mean(0), x.std(0).clamp_min(1e-2)) for x in (data["obs"], data["ag"])]
+
+    def forward(self, obs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        (om, os_), (gm, gs) = self.stats
+        return self.net(torch.cat([((obs - om) / os_).clamp(-5, 5), ((goal - gm) / gs).clamp(-5, 5)], -1))
+
+
+def fit(model: InverseModel, opt, data: dict[str, torch.Tensor], horizon: int, steps: int,
+        gen: torch.Generator) -> float:
+    """``steps`` Adam steps of MSE between ``model(o_t, ag_{t+k})`` and ``a_t``; the last step's loss."""
+    n = data["obs"].shape[0]
+    model.refresh(data)
+    loss = torch.zeros(())
+    for _ in range(steps):
+        i = torch.randint(n, (512,), generator=gen)
+        j = (i + torch.randint(horizon, i.shape, generator=gen)).clamp(max=n - 1)
+        j = torch.where(data["ep"][j] == data["ep"][i], j, i)
+        loss = (model(data["obs"][i], data["ag"][j]) - data["act"][i]).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return float(loss.detach())
+
+
+def rollout(env, model: InverseModel, seed: int, sigma: float, rng: np.random.Generator) -> tuple[dict, bool]:
+    """One episode with ``model`` (plus N(0, sigma^2) action noise); its rows and whether it succeeded."""
+    o, _ = env.reset(seed=seed)
+    obs, act, ag = [], [], []
+    for _ in range(50):
+        with torch.no_grad():
+            a = model(torch.as_tensor(o["observation"]).float(), torch.as_tensor(o["desired_goal"]).float()).numpy()
+        if sigma:
+            a = np.clip(a + sigma * rng.standard_normal(a.shape), -1.0, 1.0)
+        obs.append(o["observation"])
+        act.append(a)
+        o, _, _, _, info = env.step(a)
+        ag.append(o["achieved_goal"])
+    rows = {"obs": torch.as_tensor(np.array(obs)).float(), "act": torch.as_tensor(np.array(act)).float(),
+            "ag": torch.as_tensor(np.array(ag)).float()}
+    return rows, bool(info["is_success"])
+
+
+def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, seed: int, log,
+         episodes: int = 100) -> list[dict]:
+    """Clone, then ``rounds`` of: 100 noisy episodes with the clone, added to the data, cloned further.
+
+    Each clone is evaluated on ``episodes`` deterministic episodes (the goals of :func:`eval_goals`).
+    """
+    torch.manual_seed(seed)
+    gen, rng = torch.Generator().manual_seed(seed), np.random.default_rng(seed)
+    data = read_rows(paths)
+    model = InverseModel(data)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    env = gym.make(ENV)
+    results, new_frames, cpu = [], 0, time.process_time()
+    for r in range(rounds + 1):
+        loss = fit(model, opt, data, horizon, steps, gen)
+        success = np.mean([rollout(env, model, EVAL_SEED + e, 0.0, rng)[1] for e in range(episodes)])
+        results.append({"what": "gcsl" if rounds else "clone", "memories": paths, "horizon": horizon, "seed": seed,
+                        "round": r, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
+                        "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1)})
+        log(results[-1])
+        if r == rounds:
+            break
+        for e in range(100):
+            rows, _ = rollout(env, model, 1_000_000 * (seed + 1) + 100 * r + e, sigma, rng)
+            rows["ep"] = torch.full((50,), int(data["ep"].max()) + 1)
+            data = {k: torch.cat([data[k], rows[k]]) for k in data}
+            new_frames += 50
+    env.close()
+    return results
+
+
+def read_curve(run_dir: str) -> list[tuple[int, float]]:
+    """(frames, evaluated success) of a recipe run, from every eval CSV its hydra dir holds (resumes included)."""
+    import glob
+
+    points = {}
+    for path in glob.glob(f"{run_dir}/her_logging/*/scalars/eval/success_rate.csv"):
+        for line in open(path):
+            frames, success = line.strip().split(",")
+            points[int(float(frames))] = float(success)
+    return sorted(points.items())
+
+
+def plot(runs: list[str], results: str | None, png: str, memory_frames: int) -> None:
+    """Evaluation curves of the runs, and the hindsight clones of the memory at ``memory_frames`` (+ new frames)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for spec in runs:
+        name, run_dir = spec.split("=", 1)
+        curve = read_curve(run_dir)
+        ax.plot([f / 1000 for f, _ in curve], [s for _, s in curve], marker=".", label=name)
+    rows = [json.loads(line) for line in open(results)] if results else []
+    for what, marker in (("clone", "*"), ("gcsl", "x")):
+        for horizon in sorted({r["horizon"] for r in rows if r["what"] == what}):
+            pts = [r for r in rows if r["what"] == what and r["horizon"] == horizon]
+            ax.plot([(memory_frames + r["new_frames"]) / 1000 for r in pts], [r["success"] for r in pts], marker,
+                    markersize=10 if what == "clone" else 7, linestyle="-" if what == "gcsl" else "none",
+                    label=f"hindsight {what} of the SAC s1 memory, horizon {horizon}")
+    ax.axhline(0.1, color="grey", linestyle=":", linewidth=1)
+    ax.text(1, 0.12, "rest-pose goals (10%)", color="grey", fontsize=8)
+    ax.axhline(0.9, color="black", linestyle="--", linewidth=1)
+    ax.set_xlabel("env frames (thousands)")
+    ax.set_ylabel("evaluated success (100 episodes)")
+    ax.set_title("HandReach-v3")
+    ax.set_ylim(-0.02, 1.0)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("what", choices=["cover", "clone", "gcsl", "plot"])
+    parser.add_argument("memories", nargs="+", help="HandReach memories (ZarrStorage paths)")
+    parser.add_argument("--horizon", type=int, nargs="+", default=[3], help="relabelling horizons (clone: each)")
+    parser.add_argument("--steps", type=int, default=5000, help="Adam steps of the clone (a gcsl round: this many)")
+    parser.add_argument("--rounds", type=int, default=5, help="gcsl: collect-and-clone rounds of 100 episodes")
+    parser.add_argument("--sigma", type=float, default=0.1, help="gcsl: action noise while collecting")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=100,
+                        help="evaluation episodes of a clone (cover: twice as many goals)")
+    parser.add_argument("--out", default=None, help="also append the JSON lines to this file (plot: read them)")
+    parser.add_argument("--runs", nargs="*", default=[], help="plot: NAME=RUN_DIR of recipe runs")
+    parser.add_argument("--png", default="hand_reach.png", help="plot: the figure")
+    args = parser.parse_args(argv)
+    gym.register_envs(gymnasium_robotics)
+    torch.set_num_threads(1)
+
+    def log(row: dict) -> None:
+        print(json.dumps(row), flush=True)
+        if args.out:
+            with open(args.out, "a") as f:
+                f.write(json.dumps(row) + "\n")
+
+    if args.what == "plot":
+        with ZarrStorage(args.memories[0], read_only=True) as store:
+            rows = len(store)
+        plot(args.runs, args.out, args.png, rows)
+        return
+    if args.what == "cover":
+        log(cover(args.memories, n=2 * args.episodes))
+        return
+    for horizon in args.horizon:
+        gcsl(args.memories, horizon, args.steps, args.rounds if args.what == "gcsl" else 0, args.sigma, args.seed, log,
+             episodes=args.episodes)
+
+
+if __name__ == "__main__":
+    main()
