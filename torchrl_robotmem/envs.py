@@ -207,7 +207,9 @@ class ThreadKeepingSerialEnv(SerialEnv):
         >>> from torchrl_robotmem.envs import make_env
         >>> threads = torch.get_num_threads()
         >>> torch.set_num_threads(1)
-        >>> make_env("FetchReach-v4", num_envs=2).close()
+        >>> env = make_env("FetchReach-v4", num_envs=2)
+        >>> _ = env.rollout(2)              # a SerialEnv starts its workers on first use
+        >>> env.close()
         >>> torch.get_num_threads()
         1
         >>> torch.set_num_threads(threads)
