@@ -19,12 +19,12 @@ Three measurements on the memory a ``recipes/her/train.py env=hand_reach`` run w
     python -m recipes.her.tools.hand_memory gcsl bench_results/i27/hand_reach-s1.zarr --horizon 3 --rounds 5
 
 Each result is printed as one JSON line (and appended to ``--out``). ``plot`` draws the runs'
-evaluation curves (``--runs NAME=RUN_DIR``, each with its ``her_logging/*/scalars/eval/success_rate.csv``)
-and the clone / gcsl lines of ``--out`` placed at the frames of the memory they came from::
+evaluation curves (``--runs NAME=RUN``: a run's hydra dir, or the JSON ``compare --archive`` wrote for it)
+and the clone / gcsl lines of the result files, placed at the frames of the memory they came from::
 
-    python -m recipes.her.tools.hand_memory plot bench_results/i27/hand_reach-s1.zarr \
-        --runs "SAC s0=bench_results/i27/hand_reach-s0-out" "SAC s1=bench_results/i27/hand_reach-s1-out" \
-        --out bench_results/i27/hand_memory.jsonl --png docs/img/hand_reach.png
+    python -m recipes.her.tools.hand_memory plot docs/runs/hand_memory.jsonl \
+        --runs "SAC s0=docs/runs/hand_reach-s0-out.json" "SAC s1=docs/runs/hand_reach-s1-out.json" \
+        --png docs/img/hand_reach.png
 """
 from __future__ import annotations
 
@@ -170,9 +170,13 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
 
 
 def read_curve(run_dir: str) -> list[tuple[int, float]]:
-    """(frames, evaluated success) of a recipe run, from every eval CSV its hydra dir holds (resumes included)."""
+    """(frames, evaluated success) of a recipe run: every eval CSV its hydra dir holds (resumes included),
+    or the ``curve`` of its ``compare --archive`` JSON."""
     import glob
 
+    if run_dir.endswith(".json"):
+        with open(run_dir) as f:
+            return [(int(frames), float(success)) for frames, success in json.load(f)["curve"]]
     points = {}
     for path in glob.glob(f"{run_dir}/her_logging/*/scalars/eval/success_rate.csv"):
         for line in open(path):
@@ -181,8 +185,8 @@ def read_curve(run_dir: str) -> list[tuple[int, float]]:
     return sorted(points.items())
 
 
-def plot(runs: list[str], results: str | None, png: str, memory_frames: int) -> None:
-    """Evaluation curves of the runs, and the hindsight clones of the memory at ``memory_frames`` (+ new frames)."""
+def plot(runs: list[str], results: list[str], png: str) -> None:
+    """Evaluation curves of the runs, and the clone / gcsl lines of ``results`` at their memory's frames (+ new ones)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -193,13 +197,15 @@ def plot(runs: list[str], results: str | None, png: str, memory_frames: int) -> 
         name, run_dir = spec.split("=", 1)
         curve = read_curve(run_dir)
         ax.plot([f / 1000 for f, _ in curve], [s for _, s in curve], marker=".", label=name)
-    rows = [json.loads(line) for line in open(results)] if results else []
-    for what, marker in (("clone", "*"), ("gcsl", "x")):
-        for horizon in sorted({r["horizon"] for r in rows if r["what"] == what}):
-            pts = [r for r in rows if r["what"] == what and r["horizon"] == horizon]
-            ax.plot([(memory_frames + r["new_frames"]) / 1000 for r in pts], [r["success"] for r in pts], marker,
-                    markersize=10 if what == "clone" else 7, linestyle="-" if what == "gcsl" else "none",
-                    label=f"hindsight {what} of the SAC s1 memory, horizon {horizon}")
+    for path in results:
+        rows = [json.loads(line) for line in open(path)]
+        for what, marker in (("clone", "*"), ("gcsl", "x")):
+            for horizon in sorted({r["horizon"] for r in rows if r["what"] == what}):
+                pts = [r for r in rows if r["what"] == what and r["horizon"] == horizon]
+                memory = min(r["memory_rows"] - r["new_frames"] for r in pts)  # the memory's own frames
+                ax.plot([(memory + r["new_frames"]) / 1000 for r in pts], [r["success"] for r in pts], marker,
+                        markersize=10 if what == "clone" else 7, linestyle="-" if what == "gcsl" else "none",
+                        label=f"hindsight {what} of the SAC seed-1 memory, horizon {horizon}")
     ax.axhline(0.1, color="grey", linestyle=":", linewidth=1)
     ax.text(1, 0.12, "rest-pose goals (10%)", color="grey", fontsize=8)
     ax.axhline(0.9, color="black", linestyle="--", linewidth=1)
@@ -215,7 +221,7 @@ def plot(runs: list[str], results: str | None, png: str, memory_frames: int) -> 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("what", choices=["cover", "clone", "gcsl", "plot"])
-    parser.add_argument("memories", nargs="+", help="HandReach memories (ZarrStorage paths)")
+    parser.add_argument("memories", nargs="*", help="HandReach memories (ZarrStorage paths); plot: result files")
     parser.add_argument("--horizon", type=int, nargs="+", default=[3], help="relabelling horizons (clone: each)")
     parser.add_argument("--steps", type=int, default=5000, help="Adam steps of the clone (a gcsl round: this many)")
     parser.add_argument("--rounds", type=int, default=5, help="gcsl: collect-and-clone rounds of 100 episodes")
@@ -237,10 +243,10 @@ def main(argv: list[str] | None = None) -> None:
                 f.write(json.dumps(row) + "\n")
 
     if args.what == "plot":
-        with ZarrStorage(args.memories[0], read_only=True) as store:
-            rows = len(store)
-        plot(args.runs, args.out, args.png, rows)
+        plot(args.runs, args.memories + ([args.out] if args.out else []), args.png)
         return
+    if not args.memories:
+        parser.error(f"{args.what} needs at least one memory path")
     if args.what == "cover":
         log(cover(args.memories, n=2 * args.episodes))
         return
