@@ -113,9 +113,21 @@ def test_the_recipe_clones_a_prior_with_hindsight_goals(tmp_path):
     (["prior.clone_goals=hindsight", "memory.recall.enabled=true"], "set memory.recall.enabled=false"),
     (["prior.clone_goals=hindsight", "prior.bc=0.4", "prior.bc_original_goals=true"], "Set one of them"),
 ])
-def test_hindsight_settings_that_do_not_go_together_are_refused(tmp_path, overrides, message):
+def test_hindsight_settings_that_do_not_go_together_are_refused(overrides, message):
+    from hydra import compose, initialize_config_dir
+
+    from recipes.her.prior_memory import check_prior_config
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "her"), version_base="1.3"):
+        cfg = compose("config", overrides=["prior=clone", "prior.paths=[prior.zarr]", *overrides])
+    with pytest.raises(ValueError, match=message):
+        check_prior_config(cfg)
+
+
+def test_the_recipe_refuses_them_before_writing_anything(tmp_path):
     prior = write_memory(tmp_path / "raw-gym.zarr", raw_gym_rows(episodes=1))
     own = tmp_path / "own.zarr"
-    proc = recipe(tmp_path, f"memory.path={own}", "prior=clone", f"prior.paths=[{prior}]", *overrides)
-    assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-2000:]
-    assert not own.exists()  # refused before the run's memory is opened
+    proc = recipe(tmp_path, f"memory.path={own}", "prior=clone", f"prior.paths=[{prior}]",
+                  "prior.clone_goals=hindsight", "memory.recall.enabled=true")
+    assert proc.returncode != 0 and "set memory.recall.enabled=false" in proc.stderr, proc.stderr[-2000:]
+    assert not own.exists()  # check_prior_config runs before the run's memory is opened
