@@ -205,9 +205,11 @@ def plot(runs: list[str], results: list[str], png: str) -> None:
                 memory = min(r["memory_rows"] - r["new_frames"] for r in pts)  # the memory's own frames
                 ax.plot([(memory + r["new_frames"]) / 1000 for r in pts], [r["success"] for r in pts], marker,
                         markersize=10 if what == "clone" else 7, linestyle="-" if what == "gcsl" else "none",
-                        label=f"hindsight {what} of the SAC seed-1 memory, horizon {horizon}")
+                        label=(f"hindsight clone of the SAC seed-1 memory, horizon {horizon}" if what == "clone" else
+                               f"GCSL rounds from that memory (5k frames each), horizon {horizon}"))
     ax.axhline(0.1, color="grey", linestyle=":", linewidth=1)
-    ax.text(1, 0.12, "rest-pose goals (10%)", color="grey", fontsize=8)
+    ax.text(0.99, 0.06, "rest-pose goals (10%)", color="grey", fontsize=8, ha="right",
+            transform=ax.get_yaxis_transform())
     ax.axhline(0.9, color="black", linestyle="--", linewidth=1)
     ax.set_xlabel("env frames (thousands)")
     ax.set_ylabel("evaluated success (100 episodes)")
