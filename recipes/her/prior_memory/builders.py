@@ -105,7 +105,7 @@ def make_prior_terms(cfg: DictConfig, loss_module: LossModule, keys: tuple, prio
     ``dtypes``: the casts of :func:`check_prior_memories`, applied to the rows cloned into the actor.
     """
     prior = cfg.prior
-    demos = None  # the prior's successful rows with their own goals, read once for cloning and BC
+    demos = None  # the rows cloned (successful, own goals; every row with hindsight) and imitated by BC, read once
     if prior.clone_steps or (prior.bc and prior.bc_original_goals):
         demos = load_demos(loss_module, [b.storage for b in priors], dtypes=dtypes,
                            hindsight=prior.clone_goals == "hindsight")
