@@ -17,7 +17,7 @@ from test_recipe_priors import raw_gym_rows, recipe, summary_of, write_memory
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from recipes.her.prior_memory.hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, episode_ids  # noqa: E402
+from recipes.her.prior_memory.hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, episode_ids, numbered_episodes  # noqa: E402
 
 SEED = int(os.environ.get("ROBOTMEM_TEST_SEED", "0"))
 
@@ -31,6 +31,14 @@ def test_episode_ids_from_done_flags_and_from_trajectory_ids():
     assert episode_ids(rows).tolist() == [7, 7, 7, 9, 9, 9]  # the collector's own ids win
     with pytest.raises(KeyError, match="episode boundaries"):
         episode_ids(TensorDict({"observation": torch.zeros(3, 2)}, batch_size=[3]))
+
+
+def test_numbered_episodes_are_unique_across_memories():
+    first = TensorDict({("collector", "traj_ids"): torch.tensor([7, 7, 9, 12])}, batch_size=[4])
+    second = TensorDict({("collector", "traj_ids"): torch.tensor([0, 0, 1])}, batch_size=[3])  # another run's collector
+    a = numbered_episodes(first)
+    b = numbered_episodes(second, first=int(a.max()) + 1)
+    assert a.tolist() == [0, 0, 1, 2] and b.tolist() == [3, 3, 4]
 
 
 def hindsight_rows(n_episodes: int = 3, length: int = 5) -> TensorDict:

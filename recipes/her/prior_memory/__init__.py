@@ -25,7 +25,7 @@ directory is on ``sys.path``); the tools import ``recipes.her.prior_memory``.
 from .anchor import CloneAnchor
 from .bc import CRRActorLoss, PriorBC, load_demos, pretrain_actor
 from .builders import check_prior_config, check_prior_memories, make_prior_mix, make_prior_terms, step_schedules
-from .hindsight import HindsightGoals, episode_ids
+from .hindsight import HindsightGoals, episode_ids, numbered_episodes
 from .layout import cast_rows, check_prior_layout, describe_prior, prior_summary
 from .mix import PRIOR_KEY, TRANSITION_KEYS, PriorMix
 from .schedules import clone_anchor_weight, prior_ratio
@@ -50,6 +50,7 @@ __all__ = [
     "load_demos",
     "make_prior_mix",
     "make_prior_terms",
+    "numbered_episodes",
     "pretrain_actor",
     "prior_ratio",
     "prior_summary",

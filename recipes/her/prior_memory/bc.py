@@ -34,7 +34,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
 from .actor_critic import ActorCritic, loss_device
-from .hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, episode_ids
+from .hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, numbered_episodes
 from .layout import cast_rows
 from .mix import PRIOR_KEY
 
@@ -212,8 +212,7 @@ def load_demos(loss_module: LossModule, storages: list, success_only: bool = Tru
     for storage in storages:
         rows = storage[: len(storage)]
         if hindsight:
-            ids = episode_ids(rows)
-            ids = torch.unique(ids, return_inverse=True)[1] + episodes  # 0.. within a memory, then offset
+            ids = numbered_episodes(rows, first=episodes)  # unique across the memories
             episodes = int(ids.max()) + 1 if ids.numel() else episodes
         if success_only and not hindsight and "episode_success" in rows.keys():
             rows = rows[rows.get("episode_success").reshape(rows.shape[0]) > 0.5]

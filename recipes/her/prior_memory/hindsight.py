@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["ACHIEVED_KEY", "EPISODE_KEY", "HindsightGoals", "episode_ids"]
+__all__ = ["ACHIEVED_KEY", "EPISODE_KEY", "HindsightGoals", "episode_ids", "numbered_episodes"]
 
 ACHIEVED_KEY = ("next", "achieved_goal")
 EPISODE_KEY = "hindsight_episode"  # the column load_demos adds: one number an episode, unique across memories
@@ -50,6 +50,22 @@ def episode_ids(rows: TensorDictBase) -> torch.Tensor:
     starts = torch.zeros_like(ends)
     starts[1:] = ends[:-1]
     return starts.long().cumsum(0)
+
+
+def numbered_episodes(rows: TensorDictBase, first: int = 0) -> torch.Tensor:
+    """:func:`episode_ids` renumbered ``first, first + 1, ...`` in order of the ids (int64, ``[N]``).
+
+    Numbering each memory from where the previous one stopped makes episode
+    numbers unique across several memories (two runs' collectors both start
+    their ``traj_ids`` at 0); the next memory starts at ``int(ids.max()) + 1``.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> rows = TensorDict({("collector", "traj_ids"): torch.tensor([7, 7, 9])}, batch_size=[3])
+        >>> numbered_episodes(rows, first=4)
+        tensor([4, 4, 5])
+    """
+    return torch.unique(episode_ids(rows), return_inverse=True)[1] + int(first)
 
 
 class HindsightGoals:

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from recipes.her.prior_memory.hindsight import episode_ids
+from recipes.her.prior_memory.hindsight import numbered_episodes
 from torchrl_robotmem import ZarrStorage, recall
 
 ENV = "HandReach-v3"
@@ -51,7 +51,7 @@ def read_rows(paths: list[str]) -> dict[str, torch.Tensor]:
     for path in paths:
         with ZarrStorage(path, read_only=True) as store:
             rows = store[: len(store)]
-        ep = torch.unique(episode_ids(rows), return_inverse=True)[1] + offset
+        ep = numbered_episodes(rows, first=offset)
         offset = int(ep.max()) + 1
         parts.append({"obs": rows["observation"].float(), "act": rows["action"].float(),
                       "ag": rows["next", "achieved_goal"].float(), "ep": ep})
