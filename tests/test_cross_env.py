@@ -37,6 +37,41 @@ def test_mcnemar_uses_discordant_pairs_only():
         mcnemar([1], [1, 0])
 
 
+def test_a_killed_memory_build_never_leaves_a_memory_behind(tmp_path):
+    """SIGKILL during the pooled memory's build: ``seed0.zarr`` does not exist (learned_only rebuilds it)."""
+    import signal
+    import subprocess
+    import time
+
+    from recipes.scripted.controllers import StrikeParams
+    from torchrl_robotmem import ZarrStorage
+
+    path = tmp_path / "seed0.zarr"
+    building = Path(str(path) + ".building")
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); from recipes.cross_env.run import build_memory;"
+            "from recipes.scripted.controllers import StrikeParams;"
+            "build_memory(sys.argv[2], 0, 10**6, 1, StrikeParams())")  # never finishes: killed mid-build
+    proc = subprocess.Popen([sys.executable, "-c", code, str(ROOT), str(path)])
+    try:
+        while proc.poll() is None:  # wait until it has written rows
+            time.sleep(0.2)
+            written = [p for p in (building, path) if (p / "zarr.json").is_file()]
+            if written:
+                with ZarrStorage(str(written[0]), read_only=True) as store:
+                    if len(store) >= 50:
+                        break
+        assert proc.poll() is None, "the build process died before it was killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert building.is_dir() and not path.exists()  # the half-written build is under its own name
+    out = run.build_memory(str(path), 0, 1, 1, StrikeParams())  # a later build replaces it
+    assert not building.exists() and out["push"]["path"] == str(path)
+    with ZarrStorage(str(path), read_only=True) as store:
+        assert len(store) == 100  # 1 + 1 episodes of 50 steps
+
+
 @pytest.mark.full
 def test_cross_env_command_end_to_end(tmp_path):
     out = tmp_path / "out"

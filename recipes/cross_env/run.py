@@ -282,16 +282,25 @@ def plot_learned(learned: dict, path: str) -> bool:
 
 def build_memory(path: str, replicate: int, push_episodes: int, slide_episodes: int,
                  baseline: StrikeParams, log=print) -> dict:
-    """FetchPush then FetchSlide noisy scripted episodes in one ZarrStorage (env-tagged)."""
-    if os.path.exists(path):
-        shutil.rmtree(path)
-    rb = open_memory(path, max(50 * (push_episodes + slide_episodes), 1000))
+    """FetchPush then FetchSlide noisy scripted episodes in one ZarrStorage (env-tagged).
+
+    The memory is written to ``path + ".building"`` and renamed to ``path`` once complete, so
+    ``path`` never names a half-written memory: a build that is killed leaves only the
+    ``.building`` directory, which the next build removes.
+    """
+    building = path + ".building"
+    for stale in (building, path):
+        if os.path.exists(stale):
+            shutil.rmtree(stale)
+    rb = open_memory(building, max(50 * (push_episodes + slide_episodes), 1000))
     try:
-        push = collect("push", push_episodes, path, noise=1.0, seed=100 + replicate, backend="gym", rb=rb)
-        slide = collect("slide", slide_episodes, path, noise=1.0, seed=200 + replicate, backend="gym",
+        push = collect("push", push_episodes, building, noise=1.0, seed=100 + replicate, backend="gym", rb=rb)
+        slide = collect("slide", slide_episodes, building, noise=1.0, seed=200 + replicate, backend="gym",
                         base=baseline, rb=rb)
     finally:
         rb.storage.close()
+    os.rename(building, path)
+    push["path"] = slide["path"] = path
     log(f"memory {replicate}: FetchPush {push['successes']}/{push_episodes}, "
         f"FetchSlide {slide['successes']}/{slide_episodes} successes")
     return {"push": push, "slide": slide}
@@ -494,7 +503,8 @@ def learned_only(args: argparse.Namespace, log) -> dict:
     """Run (or continue) the learned arm alone, next to the scripted arms of ``out/results.json``.
 
     The pooled memory of replicate 0 is rebuilt from the recorded baseline when
-    ``workdir`` no longer holds it (the same seeds give the same episodes).
+    ``workdir`` no longer holds it, or holds only a build that was killed (the same
+    seeds give the same episodes).
     """
     path = os.path.join(args.out, "results.json")
     if not os.path.exists(path):
