@@ -125,6 +125,35 @@ def test_every_env_group_composes(group):
     assert cfg.replay_buffer.storage._target_ == "torchrl_robotmem.ZarrStorage"
 
 
+def test_recall_from_another_memory_read_only(tmp_path):
+    """memory.recall.memory=<path>: the envs recall the prior memory's successful goals, not the run's own."""
+    from hydra import compose, initialize_config_dir
+
+    from recipes.her.utils import make_task_env
+    from recipes.scripted.collect import collect
+    from torchrl_robotmem import ZarrStorage, recall
+
+    prior = tmp_path / "scripted.zarr"
+    collect("push", 4, str(prior), backend="gym")  # default parameters: successful episodes
+    own = ZarrStorage(tmp_path / "own.zarr", 1000)  # empty: recall from it would find nothing
+    with initialize_config_dir(str(RECIPE_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=["env=push", "memory.recall.enabled=true", f"memory.recall.memory={prior}",
+                                           "+memory.recall.success_only=true"])
+    env = make_task_env(cfg, 1, seed=0, memory=own)
+    try:
+        td = env.reset()
+        with ZarrStorage(prior, read_only=True) as store:
+            want = recall(store, td["desired_goal"].reshape(3), k=5, success_only=True)
+            assert want["distance"].numel() == 5 and (store[want["index"]]["next", "is_success"] > 0.5).all()
+        assert td["prior_goals_mask"].all()
+        assert torch.allclose(td["prior_goals"].reshape(5, 3), want["next", "achieved_goal"])
+        assert torch.allclose(td["prior_goals_dist"].reshape(5), want["distance"])
+    finally:
+        env.close()
+        own.close()
+    assert len(ZarrStorage(prior, read_only=True)) == 200  # read, never written
+
+
 def test_critic_layer_norm_option(tmp_path):
     """network.critic_layer_norm=true puts a LayerNorm after each hidden layer of the critic only."""
     from hydra import compose, initialize_config_dir

@@ -180,10 +180,15 @@ def make_prior_buffers(cfg: DictConfig, device: torch.device | None = None) -> l
 
 
 def make_recall(cfg: DictConfig, memory):
-    """A :class:`~torchrl_robotmem.RecallTransform` over ``memory`` when enabled, else ``None``."""
+    """A :class:`~torchrl_robotmem.RecallTransform` (over ``memory.recall.memory`` or this run's memory), or ``None``.
+
+    ``memory.recall.memory=<path>`` recalls from another memory, read-only: a prior run's, or the scripted
+    controller's of ``prior.paths`` (what the seed calls states where past runs found success).
+    """
     if not cfg.memory.recall.enabled:
         return None
-    return _build(cfg.memory.recall, memory=memory)
+    other = cfg.memory.recall.get("memory")
+    return _build(cfg.memory.recall, memory=to_absolute_path(str(other)) if other else memory)
 
 
 def refresh_recall(batch: TensorDictBase, recall) -> TensorDictBase:
