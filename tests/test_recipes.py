@@ -55,6 +55,12 @@ def test_fetch_reach_runs(tmp_path, algo):
     assert (tmp_path / "mem.zarr-agent").is_dir()  # torchrl.checkpoint of the agent
     scalars = next((tmp_path / "out" / "her_logging").glob("*/scalars"))
     assert (scalars / "eval" / "success_rate.csv").read_text().splitlines()[-1].startswith("50,")
+    # every evaluation's per-episode successes, for goal-by-goal comparisons (recipes.her.tools.paired)
+    from recipes.her.run_record import read_episodes
+
+    episodes = read_episodes(str(tmp_path / "out"))
+    assert sorted(episodes) == [0, 50] and all(e["seed"] == 0 and len(e["success"]) == 1 for e in episodes.values())
+    assert [(f, float(sum(episodes[f]["success"]))) for f, _ in s["curve"]] == [(f, r) for f, r in s["curve"]]
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the refusal on a machine without CUDA (tests/test_cuda.py runs it)")
@@ -123,6 +129,35 @@ def test_every_env_group_composes(group):
     env_family(cfg.env.name)  # a supported id
     assert cfg.collector.frames_per_batch % cfg.env.max_episode_steps == 0
     assert cfg.replay_buffer.storage._target_ == "torchrl_robotmem.ZarrStorage"
+
+
+def test_paired_compares_two_arms_goal_by_goal(tmp_path):
+    from scipy.stats import binomtest
+
+    from recipes.her.run_record import record_episodes
+    from recipes.her.tools import paired
+
+    runs = {}
+    for arm, outcomes in (("a", {0: [1] * 8 + [0] * 2, 1: [1] * 6 + [0] * 4}), ("b", {0: [0] * 10, 1: [1] * 5 + [0] * 5})):
+        for seed, success in outcomes.items():
+            run_dir = tmp_path / f"{arm}{seed}"
+            run_dir.mkdir()
+            record_episodes(0, seed, [0] * 10, path=str(run_dir / "eval_episodes.jsonl"))
+            record_episodes(500, seed, [1] * 10, path=str(run_dir / "eval_episodes.jsonl"))
+            record_episodes(500, seed, success, path=str(run_dir / "eval_episodes.jsonl"))  # resumed: the later line
+            runs[arm, seed] = str(run_dir)
+    out = tmp_path / "paired.json"
+    result = paired.main(["--frames", "500", "--out", str(out),
+                          f"memory={runs['a', 0]},{runs['a', 1]}",
+                          f"control={runs['b', 0]},{runs['b', 1]}"])
+    assert result["pooled"]["a"] == 0.7 and result["pooled"]["b"] == 0.25 and result["pooled"]["n"] == 20
+    assert (result["test"]["a_only"], result["test"]["b_only"]) == (9, 0)  # 8 on seed 0, 1 on seed 1
+    assert result["test"]["p"] == pytest.approx(binomtest(9, 9, 0.5).pvalue)
+    assert json.loads(out.read_text())["outcomes"]["memory"]["1"] == [1] * 6 + [0] * 4
+    with pytest.raises(KeyError, match="no evaluation at 250 frames"):
+        paired.main(["--frames", "250", f"a={runs['a', 0]}", f"b={runs['b', 0]}"])
+    with pytest.raises(ValueError, match="no seed in both arms"):
+        paired.main(["--frames", "500", f"a={runs['a', 0]}", f"b={runs['b', 1]}"])
 
 
 def test_recall_from_another_memory_read_only(tmp_path):

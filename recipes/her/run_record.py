@@ -15,8 +15,11 @@ import time
 from omegaconf import DictConfig
 from torchrl.checkpoint import Checkpoint
 
-__all__ = ["CpuClock", "append_history", "cost_line", "finish_run", "first_reach", "plot_success", "read_history",
-           "recover_checkpoint", "run_progress"]
+__all__ = ["EPISODES_FILE", "CpuClock", "append_history", "cost_line", "finish_run", "first_reach", "plot_success",
+           "read_episodes", "read_history", "record_episodes", "recover_checkpoint", "run_progress"]
+
+#: one line per evaluation, in the run's hydra directory: ``{"frames", "seed", "success": [0 / 1 per episode]}``
+EPISODES_FILE = "eval_episodes.jsonl"
 
 
 def recover_checkpoint(checkpoint_path: str) -> str | None:
@@ -210,6 +213,24 @@ def cost_line(summary: dict, target: float | None = None) -> str:
     total, train, evaluation = summary["process_cpu_s"], summary["cpu_s"], summary["eval_cpu_s"]
     return (f"{frames}, CPU-s: {total:.1f} (training {train:.1f}, evaluation {evaluation:.1f}, "
             f"the rest {max(0.0, total - train - evaluation):.1f})")
+
+
+def record_episodes(frames: int, seed: int, outcomes: list[int], path: str = EPISODES_FILE) -> None:
+    """Appends one evaluation's per-episode successes to ``path`` (a resumed run goes on appending)."""
+    with open(path, "a") as f:
+        f.write(json.dumps({"frames": int(frames), "seed": int(seed), "success": [int(x) for x in outcomes]}) + "\n")
+
+
+def read_episodes(run_dir: str) -> dict[int, dict]:
+    """``{frames: {"seed", "success"}}`` from ``run_dir/eval_episodes.jsonl``; a later line for the same frames
+    (a resumed run evaluating again) replaces an earlier one."""
+    out = {}
+    with open(os.path.join(run_dir, EPISODES_FILE)) as f:
+        for line in f:
+            if line.strip():
+                rec = json.loads(line)
+                out[int(rec["frames"])] = rec
+    return out
 
 
 def read_history(path: str) -> list[dict]:

@@ -47,7 +47,15 @@ from hydra.utils import to_absolute_path
 from omegaconf import DictConfig
 from pretrain import pretrain
 from prior_memory import check_prior_config, check_prior_memories, make_prior_mix, make_prior_terms, step_schedules
-from run_record import CpuClock, finish_run, first_reach, read_history, recover_checkpoint, run_progress
+from run_record import (
+    CpuClock,
+    finish_run,
+    first_reach,
+    read_history,
+    record_episodes,
+    recover_checkpoint,
+    run_progress,
+)
 from tensordict import TensorDictBase
 from torchrl.checkpoint import Checkpoint
 from update import Updater, compile_settings, draw_batches
@@ -176,12 +184,17 @@ def main(cfg: DictConfig) -> None:
                 "finished": finished,
             })
 
+    outcomes: list[int] = []  # each episode's success in the last evaluation on eval_env (eval_episodes.jsonl)
+
     def full_eval(env=eval_env) -> dict:
         with cpu.evaluating():
-            return evaluate(cfg, env, model[0])
+            return evaluate(cfg, env, model[0], outcomes if env is eval_env else None)
 
     def log_eval(frames: int, metrics: dict | None = None) -> float:
         metrics = dict(full_eval() if metrics is None else metrics)
+        if outcomes:
+            record_episodes(frames, cfg.seed, outcomes)
+            outcomes.clear()
         metrics["time/cpu_s"] = cpu.seconds()
         metrics["time/eval_cpu_s"] = cpu.evaluation()
         metrics["train/updates"] = update.num_updates

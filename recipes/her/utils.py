@@ -316,9 +316,15 @@ def eval_rollout(cfg: DictConfig, eval_env, actor) -> TensorDictBase:
     return rollout.reshape(-1, rollout.shape[-1])
 
 
-def evaluate(cfg: DictConfig, eval_env, actor) -> dict[str, float]:
-    """Success and return of :func:`eval_rollout`; success is ``is_success`` at an episode's last step."""
+def evaluate(cfg: DictConfig, eval_env, actor, outcomes: list | None = None) -> dict[str, float]:
+    """Success and return of :func:`eval_rollout`; success is ``is_success`` at an episode's last step.
+
+    ``outcomes``: a list that is set to each episode's success (0 / 1), in the order of the fixed goals, so
+    that two runs with the same seed can be compared goal by goal (``recipes.her.tools.paired``).
+    """
     rollout = eval_rollout(cfg, eval_env, actor)
+    if outcomes is not None:
+        outcomes[:] = (rollout["next", "is_success"][:, -1] > 0.5).int().tolist()
     return {
         # float64: 19/20 in float32 is 0.9499999, under a 0.95 target
         "eval/success_rate": rollout["next", "is_success"][:, -1].double().mean().item(),
