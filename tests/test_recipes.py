@@ -131,6 +131,29 @@ def test_every_env_group_composes(group):
     assert cfg.replay_buffer.storage._target_ == "torchrl_robotmem.ZarrStorage"
 
 
+def test_compare_reads_a_run_in_progress_from_its_logs(tmp_path):
+    """A stopped or running run (no summary.json): its curve and CPU-s come from every CSV its resumes logged."""
+    import os
+    import time
+
+    from recipes.her.tools import compare
+
+    run = tmp_path / "slide-s0"
+    for i, (evals, cpus) in enumerate(((["0,0.0", "5000,0.1"], ["0,1.5", "5000,400.0"]),
+                                      (["5000,0.2", "10000,0.3"], ["5000,410.0", "10000,800.5"]))):
+        scalars = run / "her_logging" / f"launch{i}" / "scalars"
+        for group, name, lines in (("eval", "success_rate", evals), ("time", "cpu_s", cpus)):
+            (scalars / group).mkdir(parents=True, exist_ok=True)
+            path = scalars / group / f"{name}.csv"
+            path.write_text("\n".join(lines) + "\n")
+            os.utime(path, (time.time() + i, time.time() + i))  # the resumed launch's files are the later ones
+    loaded = compare.load_run(str(run))
+    assert loaded["curve"] == [[0, 0.0], [5000, 0.2], [10000, 0.3]] and loaded["running"]
+    assert loaded["cpu_s"] == 800.5
+    row = compare.table({"prior": [loaded]}, 0.25).splitlines()[2]
+    assert row.endswith("| 10000 | 800 (partial) |")
+
+
 def test_paired_compares_two_arms_goal_by_goal(tmp_path):
     from scipy.stats import binomtest
 

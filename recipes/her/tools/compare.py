@@ -12,7 +12,8 @@ reached ``--target``::
 
 A run still in progress has no ``summary.json`` yet: its curve is read from the
 CSV logger's ``eval/success_rate.csv`` files instead (all of them: a run resumed
-with ``collector.resume=true`` logs to one more; its CPU time shows as "partial").
+with ``collector.resume=true`` logs to one more), and its CPU time from ``time/cpu_s.csv``
+at its last evaluation, marked "(partial)".
 
 Run directories (memories, logs) are big and machine-local; their curves are
 small. ``--archive DIR`` writes each run's curve, frames and CPU time to
@@ -43,21 +44,29 @@ def load_run(run_dir: str) -> dict:
     if os.path.exists(path):
         with open(path) as f:
             return {**json.load(f), "dir": run_dir, "running": False}
-    files = glob.glob(os.path.join(run_dir, "her_logging", "*", "scalars", "eval", "success_rate.csv"))
-    if not files:
+    points = logged_scalar(run_dir, "eval", "success_rate")
+    if not points:
         raise FileNotFoundError(f"{run_dir!r}: no summary.json and no eval/success_rate.csv: not a recipes/her run.")
+    curve = [[x, points[x]] for x in sorted(points)]
+    cpu = logged_scalar(run_dir, "time", "cpu_s")  # training CPU-s at each evaluation
+    return {"dir": run_dir, "curve": curve, "frames": curve[-1][0] if curve else 0,
+            "cpu_s": cpu[max(cpu)] if cpu else None, "running": True}
+
+
+def logged_scalar(run_dir: str, group: str, name: str) -> dict[int, float]:
+    """``{frames: value}`` of one scalar the CSV logger wrote, over every CSV of the run (a resumed run logs to
+    one more; the later file wins)."""
+    files = glob.glob(os.path.join(run_dir, "her_logging", "*", "scalars", group, f"{name}.csv"))
     points: dict[int, float] = {}
-    for name in sorted(files, key=os.path.getmtime):  # a resumed run logs to one more CSV: later wins
-        with open(name) as f:
+    for path in sorted(files, key=os.path.getmtime):
+        with open(path) as f:
             for row in csv.reader(f):
                 if len(row) >= 2:
                     try:
                         points[int(float(row[0]))] = float(row[1])
                     except ValueError:
                         continue  # header
-    curve = [[x, points[x]] for x in sorted(points)]
-    return {"dir": run_dir, "curve": curve, "frames": curve[-1][0] if curve else 0, "cpu_s": None,
-            "running": True}
+    return points
 
 
 def table(groups: dict[str, list[dict]], target: float) -> str:
@@ -69,7 +78,8 @@ def table(groups: dict[str, list[dict]], target: float) -> str:
             at = {int(x): y for x, y in r["curve"]}
             cells = " | ".join(f"{at[f]:.2f}" if f in at else "" for f in frames)
             reach = first_reach(r["curve"], target)
-            cpu = "partial" if r["running"] else f"{r['cpu_s']:.0f}"
+            cpu = f"{r['cpu_s']:.0f}" if r["cpu_s"] is not None else "-"
+            cpu += " (partial)" if r["running"] else ""
             lines.append(f"| {label}, {os.path.basename(r['dir'].rstrip('/'))} | {cells} | "
                          f"{reach if reach is not None else '-'} | {cpu} |")
     return "\n".join(lines)
