@@ -56,6 +56,7 @@ from run_record import (
     recover_checkpoint,
     run_progress,
 )
+from targets import clip_targets
 from tensordict import TensorDictBase
 from torchrl.checkpoint import Checkpoint
 from update import Updater, compile_settings, draw_batches
@@ -127,6 +128,7 @@ def main(cfg: DictConfig) -> None:
     model, exploration_policy = make_agent(cfg, train_env, normalizer)
     fast = compile_settings(cfg, device)  # compile.*: torch.compile and CUDA graphs for the update
     loss_module, target_net_updater = make_loss_module(cfg, model, compiled=fast["compile"])
+    clip_targets(loss_module, cfg.optim.get("target_clip"), cfg.optim.gamma)  # HER's clip_return (targets.py)
     optimizer = make_optimizer(cfg, loss_module, capturable=fast["cudagraphs"])
     terms = make_prior_terms(cfg, loss_module, loss_keys(cfg), priors, dtypes=prior_dtypes)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
