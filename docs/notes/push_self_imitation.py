@@ -11,6 +11,7 @@ their goal replaced by where the block ended) and fits on.
 
     python docs/notes/push_self_imitation.py --mode success --rounds 6     # 0.52, 0.58, 0.45 ... (results.md)
     python docs/notes/push_self_imitation.py --rounds 0 --threshold 0.03   # a tighter filter: fewer episodes
+    python docs/notes/push_self_imitation.py --rounds 0 --steps 4000 --shift 0.1   # rows shifted on the table
 
 Needs ``bench_results/prior/scripted-push-500.zarr``
 (``python -m recipes.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym path=...``).
@@ -46,6 +47,26 @@ def kept(obs, act, goal, ach, succeeded, relabel: bool):
     return torch.cat(o), torch.cat(a), torch.cat(g)
 
 
+def fit_shifted(model, opt, data, steps: int, shift: float, gen: torch.Generator) -> float:
+    """``fit`` with every row's gripper (obs 0:2), block (obs 3:5) and goal (0:2) moved by one random
+    table offset in [-shift, shift]^2: FetchPush is translation invariant on the table."""
+    n = data["obs"].shape[0]
+    model.refresh(data)
+    loss = torch.zeros(())
+    for _ in range(steps):
+        i = torch.randint(n, (512,), generator=gen)
+        obs, goal = data["obs"][i].clone(), data["ag"][i].clone()
+        d = (torch.rand(512, 2, generator=gen) * 2 - 1) * shift
+        obs[:, 0:2] += d
+        obs[:, 3:5] += d
+        goal[:, 0:2] += d
+        loss = (model(obs, goal) - data["act"][i]).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return float(loss.detach())
+
+
 def as_rows(obs, act, goal) -> dict[str, torch.Tensor]:
     n = obs.shape[0]
     return {"obs": obs.reshape(n * STEPS, -1), "act": act.reshape(n * STEPS, -1), "ag": goal.reshape(n * STEPS, -1),
@@ -60,6 +81,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=6)
     p.add_argument("--steps", type=int, default=2000, help="Adam steps a round (twice as many first)")
     p.add_argument("--sigma", type=float, default=0.1)
+    p.add_argument("--shift", type=float, default=0.0, help="> 0: train on rows shifted on the table (fit_shifted)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="jsonl of the rounds")
     args = p.parse_args()
@@ -72,8 +94,8 @@ def main() -> None:
     obs, act = rows["observation"].reshape(n, STEPS, -1), rows["action"].reshape(n, STEPS, -1)
     goal, ach = rows["desired_goal"].reshape(n, STEPS, -1), rows["next", "achieved_goal"].reshape(n, STEPS, -1)
     relabel = args.mode == "relabel"
-    O, A, G = kept(obs, act, goal, ach, (ach[:, -1] - goal[:, -1]).norm(dim=-1) < args.threshold, relabel)
-    data = as_rows(O, A, G)
+    ep_obs, ep_act, ep_goal = kept(obs, act, goal, ach, (ach[:, -1] - goal[:, -1]).norm(dim=-1) < args.threshold, relabel)
+    data = as_rows(ep_obs, ep_act, ep_goal)
     model = InverseModel(data)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     env = gym.make("FetchPush-v4")
@@ -95,9 +117,11 @@ def main() -> None:
     out = open(args.out, "w") if args.out else None
     new_frames, cpu = 0, time.process_time()
     for r in range(args.rounds + 1):
-        loss = fit(model, opt, data, 1, args.steps * (2 if r == 0 else 1), gen)
+        steps = args.steps * (2 if r == 0 else 1)
+        loss = fit_shifted(model, opt, data, steps, args.shift, gen) if args.shift else fit(model, opt, data, 1, steps, gen)
         success = float(np.mean([rollout(10_000 + e, 0.0)[-1] for e in range(100)]))
-        rec = {"mode": args.mode, "threshold": args.threshold, "sigma": args.sigma, "seed": args.seed, "round": r,
+        rec = {"mode": args.mode, "threshold": args.threshold, "sigma": args.sigma, "shift": args.shift,
+               "seed": args.seed, "round": r,
                "new_frames": new_frames, "episodes": int(data["obs"].shape[0] // STEPS), "success": success,
                "loss": loss, "cpu_s": round(time.process_time() - cpu, 1)}
         print(json.dumps(rec), flush=True)
@@ -111,9 +135,9 @@ def main() -> None:
         o, a, g, ag = (torch.stack([e[i] for e in eps]) for i in range(4))
         succeeded = torch.tensor([e[4] for e in eps])
         print(json.dumps({"round": r, "collected_success": float(succeeded.float().mean())}), flush=True)
-        O2, A2, G2 = kept(o, a, g, ag, succeeded, relabel)
-        O, A, G = torch.cat([O, O2]), torch.cat([A, A2]), torch.cat([G, G2])
-        data = as_rows(O, A, G)
+        new_obs, new_act, new_goal = kept(o, a, g, ag, succeeded, relabel)
+        ep_obs, ep_act, ep_goal = torch.cat([ep_obs, new_obs]), torch.cat([ep_act, new_act]), torch.cat([ep_goal, new_goal])
+        data = as_rows(ep_obs, ep_act, ep_goal)
     env.close()
 
 
