@@ -35,7 +35,7 @@ test: install
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 # everything, the tests marked `full` too (second tests of capabilities the default tier covers: about
-# 6 more minutes); every landing runs it. `make test-full PYTEST_ARGS="-n 2 -m full"`: those alone.
+# 8 more minutes); every landing runs it. `make test-full PYTEST_ARGS="-n 2 -m full"`: those alone.
 test-full: install
 	ROBOTMEM_FULL=1 $(MAKE) --no-print-directory test
 

@@ -111,6 +111,7 @@ def test_pickled_storage_refuses_writes_with_advice(tmp_path):
 # -- Ray ----------------------------------------------------------------------------
 
 
+@pytest.mark.full
 def test_ray_replay_buffer_with_zarr_storage(tmp_path):
     ray = pytest.importorskip("ray", reason="ray is not installed")
     from torchrl.data.replay_buffers.ray_buffer import RayReplayBuffer

@@ -59,7 +59,13 @@ def test_every_example_is_exercised():
     assert scripts == set(EXAMPLES), "add the new example to EXAMPLES"
 
 
-@pytest.mark.parametrize("script", sorted(EXAMPLES))
+# second runs of what the default tier covers elsewhere (the Shadow Hand env in test_recipes, a growing
+# memory in test_recipes' resume test, the recall transform in collectors in test_transform): full tier
+FULL_TIER_EXAMPLES = {"grow_memory.py", "recall_in_collector.py", "shadow_hand.py"}
+
+
+@pytest.mark.parametrize("script", [pytest.param(s, marks=pytest.mark.full) if s in FULL_TIER_EXAMPLES else s
+                                    for s in sorted(EXAMPLES)])
 def test_example_runs(script, tmp_path):
     args = [a.replace("{tmp}", str(tmp_path)) for a in EXAMPLES[script]]
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}

@@ -190,6 +190,7 @@ def test_normalizer_updates_in_place():
     torch.testing.assert_close(norm._observation[0], want.mean(0).float())
 
 
+@pytest.mark.full
 def test_recipe_parallel_envs_store_whole_episodes(tmp_path):
     """env.num_envs=2 env.parallel=true: two worker processes; each env's episodes lie contiguous in the memory."""
     mem = tmp_path / "m.zarr"

@@ -90,6 +90,7 @@ def test_env_specs_and_agent_dims():
     assert with_info.rollout(3)["next", "agents", "info", "x_velocity"].shape == (3, 2)
 
 
+@pytest.mark.full
 def test_memory_round_trip_with_agent_dims_and_resume(tmp_path):
     store = tmp_path / "ma.zarr"
     first = collect(str(store), 200, seed=0)  # this process: the first writing session
