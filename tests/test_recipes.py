@@ -61,6 +61,10 @@ def test_fetch_reach_runs(tmp_path, algo):
     episodes = read_episodes(str(tmp_path / "out"))
     assert sorted(episodes) == [0, 50] and all(e["seed"] == 0 and len(e["success"]) == 1 for e in episodes.values())
     assert [(f, float(sum(episodes[f]["success"]))) for f, _ in s["curve"]] == [(f, r) for f, r in s["curve"]]
+    from recipes.her.tools import compare  # the archive of the run keeps them (run directories are machine-local)
+
+    compare.main(["--out", str(tmp_path / "c.png"), "--archive", str(tmp_path / "runs"), f"a={tmp_path / 'out'}"])
+    assert read_episodes(str(tmp_path / "runs" / "out.json")) == episodes
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the refusal on a machine without CUDA (tests/test_cuda.py runs it)")

@@ -222,15 +222,18 @@ def record_episodes(frames: int, seed: int, outcomes: list[int], path: str = EPI
 
 
 def read_episodes(run_dir: str) -> dict[int, dict]:
-    """``{frames: {"seed", "success"}}`` from ``run_dir/eval_episodes.jsonl``; a later line for the same frames
-    (a resumed run evaluating again) replaces an earlier one."""
-    out = {}
-    with open(os.path.join(run_dir, EPISODES_FILE)) as f:
-        for line in f:
-            if line.strip():
-                rec = json.loads(line)
-                out[int(rec["frames"])] = rec
-    return out
+    """``{frames: {"frames", "seed", "success"}}`` from ``run_dir/eval_episodes.jsonl`` (a later line for the same
+    frames, a resumed run evaluating again, replaces an earlier one), or from the ``episodes`` of a run's
+    archive (``recipes.her.tools.compare --archive``, a ``.json`` path)."""
+    if run_dir.endswith(".json") and os.path.isfile(run_dir):
+        with open(run_dir) as f:
+            records = json.load(f).get("episodes")
+        if records is None:
+            raise KeyError(f"{run_dir} holds no per-episode outcomes (archived before runs wrote {EPISODES_FILE}).")
+    else:
+        with open(os.path.join(run_dir, EPISODES_FILE)) as f:
+            records = [json.loads(line) for line in f if line.strip()]
+    return {int(rec["frames"]): rec for rec in records}
 
 
 def read_history(path: str) -> list[dict]:

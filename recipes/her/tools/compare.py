@@ -31,7 +31,7 @@ import glob
 import json
 import os
 
-from recipes.her.run_record import first_reach
+from recipes.her.run_record import EPISODES_FILE, first_reach, read_episodes
 
 
 def load_run(run_dir: str) -> dict:
@@ -86,7 +86,8 @@ def table(groups: dict[str, list[dict]], target: float) -> str:
 
 
 def archive(groups: dict[str, list[dict]], directory: str) -> list[str]:
-    """Each run's curve, frames and CPU time as ``directory/<run>.json`` (what ``load_run`` reads back)."""
+    """Each run's curve, frames, CPU time and per-episode outcomes as ``directory/<run>.json`` (what ``load_run``
+    and ``recipes.her.run_record.read_episodes`` read back)."""
     os.makedirs(directory, exist_ok=True)
     paths = []
     for runs in groups.values():
@@ -94,9 +95,13 @@ def archive(groups: dict[str, list[dict]], directory: str) -> list[str]:
             if r.get("archived"):  # read from an archive already
                 continue
             path = os.path.join(directory, os.path.basename(r["dir"].rstrip("/")) + ".json")
+            kept = {"curve": [[int(x), float(y)] for x, y in r["curve"]], "frames": int(r["frames"]),
+                    "cpu_s": r["cpu_s"], "finished": not r["running"]}
+            if os.path.isfile(os.path.join(r["dir"], EPISODES_FILE)):  # per-episode outcomes, for tools.paired
+                episodes = read_episodes(r["dir"])
+                kept["episodes"] = [episodes[f] for f in sorted(episodes)]
             with open(path, "w") as f:
-                json.dump({"curve": [[int(x), float(y)] for x, y in r["curve"]], "frames": int(r["frames"]),
-                           "cpu_s": r["cpu_s"], "finished": not r["running"]}, f)
+                json.dump(kept, f)
                 f.write("\n")
             paths.append(path)
     return paths
