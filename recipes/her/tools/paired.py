@@ -12,9 +12,10 @@ the test of issue 27's recall ablations (``memory.recall.enabled``,
         "recall=runs/recall-s0,runs/recall-s1,runs/recall-s2" \\
         "control=runs/prior-s0,runs/prior-s1,runs/prior-s2"
 
-It prints one markdown table (each arm's success per seed and pooled, the
-discordant pairs and the p-value) and, with ``--out``, writes the same with the
-outcomes themselves to a JSON file that can be archived in place of the runs.
+A run is its hydra directory or its archive (``recipes.her.tools.compare
+--archive``, which keeps the per-episode outcomes). It prints one markdown table
+(each arm's success per seed and pooled, the discordant pairs and the p-value)
+and, with ``--out``, writes the same with the outcomes themselves to a JSON file.
 """
 from __future__ import annotations
 
@@ -83,7 +84,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m recipes.her.tools.paired", description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, required=True, help="the evaluation to compare (frames collected)")
     parser.add_argument("--out", default=None, help="write the result, with the outcomes, to this JSON file")
-    parser.add_argument("arms", nargs=2, help="label=run_dir,run_dir,... (the hydra.run.dir of each run)")
+    parser.add_argument("arms", nargs=2, help="label=run,run,... (each run's hydra.run.dir or its archived .json)")
     args = parser.parse_args(argv)
     names, outcomes = [], []
     for spec in args.arms:
