@@ -30,6 +30,12 @@ BATCH = 100
 _PRELUDE = textwrap.dedent(
     f"""
     import os, signal, sys, time
+    # as launched from a terminal: a shell starts background jobs (`make test &`) with
+    # SIGINT ignored, and an ignored signal stays ignored across exec; Ctrl-C must reach
+    # the child. Restored here, not by a preexec_fn in the parent: a preexec_fn makes
+    # subprocess fork() the whole pytest worker (ENOMEM on a loaded 24 GiB CI box)
+    # where it otherwise uses vfork().
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     import numpy as np, torch
     from tensordict import TensorDict
     from torchrl.data import ReplayBuffer, TensorDictReplayBuffer
@@ -78,10 +84,8 @@ def _run_child(tmp_path: Path, body: str, *, signal_after_ready: int | None = No
     script.write_text(_PRELUDE + textwrap.dedent(body))
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     cmd = [sys.executable, str(script), str(path), str(counter_path), *args]
-    # as launched from a terminal: a shell starts background jobs (`make test &`) with SIGINT
-    # ignored, and an ignored signal stays ignored across exec; Ctrl-C must reach the child
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=tmp_path, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            cwd=tmp_path)
     if signal_after_ready is not None:
         line = proc.stdout.readline()
         assert line.strip() == "ready", f"child did not start: {line!r} {proc.stderr.read()}"
