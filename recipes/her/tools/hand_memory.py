@@ -39,6 +39,7 @@ import torch
 from torch import nn
 
 from recipes.her.prior_memory.hindsight import numbered_episodes
+from recipes.her.tools.compare import load_run
 from torchrl_robotmem import ZarrStorage, recall
 
 ENV = "HandReach-v3"
@@ -169,22 +170,6 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
     return results
 
 
-def read_curve(run_dir: str) -> list[tuple[int, float]]:
-    """(frames, evaluated success) of a recipe run: every eval CSV its hydra dir holds (resumes included),
-    or the ``curve`` of its ``compare --archive`` JSON."""
-    import glob
-
-    if run_dir.endswith(".json"):
-        with open(run_dir) as f:
-            return [(int(frames), float(success)) for frames, success in json.load(f)["curve"]]
-    points = {}
-    for path in glob.glob(f"{run_dir}/her_logging/*/scalars/eval/success_rate.csv"):
-        for line in open(path):
-            frames, success = line.strip().split(",")
-            points[int(float(frames))] = float(success)
-    return sorted(points.items())
-
-
 def plot(runs: list[str], results: list[str], png: str) -> None:
     """Evaluation curves of the runs, and the clone / gcsl lines of ``results`` at their memory's frames (+ new ones)."""
     import matplotlib
@@ -195,7 +180,7 @@ def plot(runs: list[str], results: list[str], png: str) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     for spec in runs:
         name, run_dir = spec.split("=", 1)
-        curve = read_curve(run_dir)
+        curve = load_run(run_dir)["curve"]
         ax.plot([f / 1000 for f, _ in curve], [s for _, s in curve], marker=".", label=name)
     for path in results:
         rows = [json.loads(line) for line in open(path)]
