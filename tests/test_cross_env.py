@@ -55,7 +55,10 @@ def test_a_killed_memory_build_never_leaves_a_memory_behind(tmp_path):
     try:
         while proc.poll() is None:  # wait until it has written rows
             time.sleep(0.2)
-            written = [p for p in (building, path) if (p / "zarr.json").is_file()]
+            # the commit record, once the writer has put it there (Zarr writes zarr.json atomically: the
+            # group's empty one first, then the one with the format marker)
+            written = [p for p in (building, path)
+                       if (p / "zarr.json").is_file() and "torchrl_robotmem" in (p / "zarr.json").read_text()]
             if written:
                 with ZarrStorage(str(written[0]), read_only=True) as store:
                     if len(store) >= 50:

@@ -262,8 +262,14 @@ def test_bad_paths_and_versions(tmp_path, transitions):
         ZarrStorage(tmp_path / "file.bin", 10)
     with pytest.raises(FileNotFoundError):
         ZarrStorage(tmp_path / "missing.zarr", read_only=True)
+    # the instant between a writer creating the group and writing its commit record
+    zarr.open_group(str(tmp_path / "being_created.zarr"), mode="w", zarr_format=3)
+    with pytest.raises(ValueError, match="empty Zarr group, not yet a torchrl_robotmem store.*open it again"):
+        ZarrStorage(tmp_path / "being_created.zarr", read_only=True)
     foreign = zarr.open_group(str(tmp_path / "foreign.zarr"), mode="w")
     foreign.create_array("x", shape=(3,), dtype="f4")
+    with pytest.raises(ValueError, match="not a torchrl_robotmem store"):  # a group with members: foreign
+        ZarrStorage(tmp_path / "foreign.zarr", read_only=True)
     with pytest.raises(ValueError, match="not written by torchrl_robotmem"):
         ZarrStorage(tmp_path / "foreign.zarr", 10)
     with ZarrStorage(tmp_path / "future.zarr", 10) as s:

@@ -96,6 +96,11 @@ class StoreHandle:
     def create(self, attrs: dict, max_size: int | None, chunk_rows: int | None, ndim: int) -> None:
         """Writes the commit record of a new, empty store (refusing a foreign Zarr group)."""
         if self.read_only:
+            if not attrs and not any(True for _ in self.group.keys()):
+                raise ValueError(
+                    f"{self.path!r} is an empty Zarr group, not yet a torchrl_robotmem store: a writer may be "
+                    f"creating it this instant (its {FORMAT_MARKER!r} attribute follows the group); open it again."
+                )
             raise ValueError(f"{self.path!r} is not a torchrl_robotmem store (no {FORMAT_MARKER!r} attribute).")
         if attrs or any(True for _ in self.group.keys()):
             raise ValueError(
