@@ -56,6 +56,7 @@ def test_cover_clone_and_plot(hand_memory_path, tmp_path, capsys):
     assert capsys.readouterr().out.count("{") == 3  # one JSON line a result on stdout too
     run = tmp_path / "run.json"  # a run's curve as `compare --archive` keeps it
     run.write_text(json.dumps({"curve": [[0, 0.0], [50, 0.1], [100, 0.1]], "frames": 100}))
+    assert hand_memory.load_run(str(run))["curve"] == [[0, 0.0], [50, 0.1], [100, 0.1]]  # what plot draws
     png = tmp_path / "hand.png"
     hand_memory.main(["plot", str(out), "--runs", f"SAC={run}", "--png", str(png)])
     assert png.stat().st_size > 0
