@@ -113,6 +113,9 @@ def bench_config(name: str, args, device: torch.device) -> list[dict]:
     modes = [(False, False)] + ([(True, False)] if args.compile else [])
     if args.cudagraphs and device.type == "cuda":
         modes.append((True, True))
+    if args.modes:  # a subset, e.g. only "graphs" where the time is short
+        names = {(False, False): "eager", (True, False): "compiled", (True, True): "graphs"}
+        modes = [m for m in modes if names[m] in args.modes]
     out = []
     for compiled, graphs in modes:
         out += bench_mode(name, cfg, env, rows, her, plain, fixed, device, compiled, graphs, args)
@@ -138,7 +141,9 @@ def bench_mode(name, cfg, env, rows, her, plain, fixed, device, compiled: bool, 
     def sota_step(batch=None):
         if graphs:
             torch.compiler.cudagraph_mark_step_begin()
-        return update(plain.sample() if batch is None else batch)
+        # a fixed batch is passed as a shallow copy: SACLoss writes its outputs (with grad) into the batch it is
+        # given, and CudaGraphModule refuses an input that requires grad (the sota loop samples a fresh one)
+        return update(plain.sample() if batch is None else batch.copy())
 
     fixed_plain = plain.sample()  # the sota loop's own batches (no HER, no tag columns): what it is compiled for
     for _ in range(args.warmup):
@@ -220,6 +225,8 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="also the torch.compile'd updates")
     parser.add_argument("--compile-mode", default=None, help="torch.compile mode without CUDA graphs")
     parser.add_argument("--cudagraphs", action="store_true", help="also compiled + CUDA graphs (CUDA only)")
+    parser.add_argument("--modes", nargs="*", default=None, choices=["eager", "compiled", "graphs"],
+                        help="only these of the modes the switches select (default: all of them)")
     parser.add_argument("--updates", type=int, default=30)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=10)
