@@ -280,6 +280,30 @@ def test_bad_paths_and_versions(tmp_path, transitions):
         ZarrStorage(tmp_path / "future.zarr")
 
 
+def test_a_new_store_appears_with_its_commit_record(tmp_path, transitions):
+    """A new store's zarr.json is first written with the format marker in it: no reader sees a bare group."""
+    from torchrl_robotmem.storage.handle import StoreHandle
+
+    path = tmp_path / "m.zarr"
+    h = StoreHandle(str(path), read_only=False)
+    h.open()  # the writer has the store open (and its lock): nothing a reader could open yet
+    assert not (path / "zarr.json").exists()
+    with pytest.raises(FileNotFoundError, match="no zarr.json"):
+        ZarrStorage(path, read_only=True)
+    h.create({}, max_size=10, chunk_rows=None, ndim=1)
+    attrs = json.loads((path / "zarr.json").read_text())["attributes"]
+    assert attrs["torchrl_robotmem"]["format_version"] >= 1 and attrs["len"] == 0 and attrs["max_size"] == 10
+    h.release()
+    with ZarrStorage(path, read_only=True) as s:
+        assert len(s) == 0
+    # an empty group, as an older version killed between the group and its record left it: a writer adopts it
+    zarr.open_group(str(tmp_path / "old.zarr"), mode="w", zarr_format=3)
+    with ZarrStorage(tmp_path / "old.zarr", 10) as s:
+        _rb(s).extend(transitions(3))
+    with ZarrStorage(tmp_path / "old.zarr", read_only=True) as s:
+        assert len(s) == 3
+
+
 def test_nothing_is_unpickled_on_open(tmp_path, transitions):
     path = tmp_path / "m.zarr"
     with ZarrStorage(path, 10) as s:

@@ -191,8 +191,18 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
     return LocalStore(str(p), read_only=read_only), p
 
 
-def open_group(store, *, read_only: bool) -> zarr.Group:
+def open_group(store, *, read_only: bool, create: bool = True) -> zarr.Group | None:
+    """The store's root group; ``None`` for a writable store with no group yet when ``create=False``.
+
+    With ``create=False`` a new store stays without ``zarr.json`` until :func:`create_group` writes the group
+    and its commit record in one write: a reader never sees a group without its record.
+    """
     try:
+        if not read_only and not create:
+            try:
+                return zarr.open_group(store, mode="r+", zarr_format=3)
+            except (FileNotFoundError, zarr.errors.GroupNotFoundError):
+                return None
         return zarr.open_group(store, mode="r" if read_only else "a", zarr_format=3)
     except (FileNotFoundError, zarr.errors.GroupNotFoundError) as err:
         raise FileNotFoundError(f"No Zarr store found at {store}: {err}") from None
@@ -201,6 +211,11 @@ def open_group(store, *, read_only: bool) -> zarr.Group:
         raise IntegrityError(str(getattr(store, "root", store)), [problem], read_only=read_only) from None
     except (ValueError, zarr.errors.NodeTypeValidationError) as err:
         raise ValueError(f"{store} is not a Zarr v3 group: {err}") from None
+
+
+def create_group(store, attributes: dict) -> zarr.Group:
+    """A new root group with ``attributes``: one ``zarr.json`` write, atomic on a local store."""
+    return zarr.create_group(store, attributes=attributes, zarr_format=3)
 
 
 class WriterLock:

@@ -78,7 +78,8 @@ class StoreHandle:
             _backend.remove_partial_files(self.local_dir)  # left by a writer killed mid-chunk
         elif not self.read_only and isinstance(self.path, str) and _backend.is_url(self.path):
             self.lock = _backend.url_writer_lock(self.path, self.storage_options)
-        self.group = _backend.open_group(self.store, read_only=self.read_only)
+        # a new store gets its group together with its commit record (create): no empty group in between
+        self.group = _backend.open_group(self.store, read_only=self.read_only, create=False)
 
     def check_format(self, attrs: dict) -> None:
         """Raises unless ``attrs`` carry a format marker this version reads."""
@@ -102,7 +103,7 @@ class StoreHandle:
                     f"creating it this instant (its {FORMAT_MARKER!r} attribute follows the group); open it again."
                 )
             raise ValueError(f"{self.path!r} is not a torchrl_robotmem store (no {FORMAT_MARKER!r} attribute).")
-        if attrs or any(True for _ in self.group.keys()):
+        if self.group is not None and (attrs or any(True for _ in self.group.keys())):
             raise ValueError(
                 f"{self.path!r} is a Zarr group that was not written by torchrl_robotmem "
                 f"(no {FORMAT_MARKER!r} attribute). Refusing to write into it."
@@ -112,31 +113,33 @@ class StoreHandle:
                 f"No store exists at {self.path!r} yet: pass max_size to create one, e.g. "
                 f"ZarrStorage({self.path!r}, max_size=1_000_000)."
             )
-        self.group.update_attributes(
-            {
-                FORMAT_MARKER: {
-                    "format_version": FORMAT_VERSION,
-                    "library_version": __version__,
-                    "torchrl_version": torchrl.__version__,
-                    "zarr_version": _backend.zarr.__version__,
-                    "integrity": dict(MARKER),  # checksummed chunks, all-zero ones written too
-                },
-                "max_size": int(max_size),
-                "ndim": int(ndim),
-                "inner_shape": None,
-                "chunk_rows": int(chunk_rows) if chunk_rows is not None else None,
-                "schema": None,
-                "kind": None,
-                "len": 0,
-                "cursor": 0,
-                "last_cursor": -1,
-                "write_count": 0,
-                "episode_next": 0,
-                "runs": 0,
-                "env_names": [],
-                "journal": None,
-            }
-        )
+        record = {
+            FORMAT_MARKER: {
+                "format_version": FORMAT_VERSION,
+                "library_version": __version__,
+                "torchrl_version": torchrl.__version__,
+                "zarr_version": _backend.zarr.__version__,
+                "integrity": dict(MARKER),  # checksummed chunks, all-zero ones written too
+            },
+            "max_size": int(max_size),
+            "ndim": int(ndim),
+            "inner_shape": None,
+            "chunk_rows": int(chunk_rows) if chunk_rows is not None else None,
+            "schema": None,
+            "kind": None,
+            "len": 0,
+            "cursor": 0,
+            "last_cursor": -1,
+            "write_count": 0,
+            "episode_next": 0,
+            "runs": 0,
+            "env_names": [],
+            "journal": None,
+        }
+        if self.group is None:  # a new store: the group and its record in one write
+            self.group = _backend.create_group(self.store, record)
+        else:  # an empty group (left by an older version killed while creating it)
+            self.group.update_attributes(record)
 
     # -- writer handover within a process ----------------------------------------------------
 

@@ -62,7 +62,7 @@ def open_record(handle, max_size: int | None, *, chunk_rows: int | None, ndim: i
         >>> h.release()
     """
     handle.open()
-    attrs = handle.group.attrs.asdict()
+    attrs = handle.group.attrs.asdict() if handle.group is not None else {}  # None: a new store
     if attrs.get(FORMAT_MARKER) is None:
         handle.create(attrs, max_size, chunk_rows, ndim)
         attrs = handle.group.attrs.asdict()
