@@ -135,6 +135,16 @@ def test_every_env_group_composes(group):
     assert cfg.replay_buffer.storage._target_ == "torchrl_robotmem.ZarrStorage"
 
 
+def test_compare_plot_stops_at_max_frames(tmp_path):
+    """--max-frames: the plot of runs longer than a budget ends at the budget."""
+    from recipes.her.tools import compare
+
+    runs = {"long": [{"curve": [[0, 0.0], [100, 0.5], [200, 0.9]], "running": False}]}
+    assert compare.plot(runs, str(tmp_path / "a.png"), "", 0.5)[1] > 200
+    assert compare.plot(runs, str(tmp_path / "b.png"), "", 0.5, max_frames=100)[1] == pytest.approx(102)
+    assert (tmp_path / "b.png").stat().st_size > 0
+
+
 def test_compare_reads_a_run_in_progress_from_its_logs(tmp_path):
     """A stopped or running run (no summary.json): its curve and CPU-s come from every CSV its resumes logged."""
     import os

@@ -107,7 +107,9 @@ def archive(groups: dict[str, list[dict]], directory: str) -> list[str]:
     return paths
 
 
-def plot(groups: dict[str, list[dict]], path: str, title: str, target: float) -> None:
+def plot(groups: dict[str, list[dict]], path: str, title: str, target: float,
+         max_frames: int | None = None) -> tuple[float, float]:
+    """Every run's curve, one color a group (dashed: a run not finished); returns the x axis' limits."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -123,11 +125,15 @@ def plot(groups: dict[str, list[dict]], path: str, title: str, target: float) ->
                         ls="--" if r["running"] else "-", label=label if i == 0 else None)
     ax.axhline(target, color="grey", lw=0.8, ls=":")
     ax.set(xlabel="new env frames", ylabel="eval success rate", ylim=(-0.02, 1.02), title=title)
+    if max_frames:  # a budget shorter than some runs: the plot stops there
+        ax.set_xlim(-0.02 * max_frames, 1.02 * max_frames)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, framealpha=0.9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+    xlim = ax.get_xlim()
     plt.close(fig)
+    return xlim
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -137,6 +143,7 @@ def main(argv: list[str] | None = None) -> str:
     p.add_argument("--title", default="")
     p.add_argument("--target", type=float, default=0.9)
     p.add_argument("--archive", default=None, help="also write each run's curve to ARCHIVE/<run>.json")
+    p.add_argument("--max-frames", type=int, default=None, help="the plot's x axis ends here")
     args = p.parse_args(argv)
     groups = {}
     for g in args.groups:
@@ -144,7 +151,7 @@ def main(argv: list[str] | None = None) -> str:
         if not dirs:
             p.error(f"{g!r}: expected label=run_dir[,run_dir...]")
         groups[label] = [load_run(d) for d in dirs.split(",") if d]
-    plot(groups, args.out, args.title, args.target)
+    plot(groups, args.out, args.title, args.target, args.max_frames)
     if args.archive:
         archive(groups, args.archive)
     md = table(groups, args.target)
