@@ -191,19 +191,19 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
     return LocalStore(str(p), read_only=read_only), p
 
 
-def open_group(store, *, read_only: bool, create: bool = True) -> zarr.Group | None:
-    """The store's root group; ``None`` for a writable store with no group yet when ``create=False``.
+def open_group(store, *, read_only: bool) -> zarr.Group | None:
+    """The store's root group; ``None`` for a writable store with no group yet.
 
-    With ``create=False`` a new store stays without ``zarr.json`` until :func:`create_group` writes the group
-    and its commit record in one write: a reader never sees a group without its record.
+    A new store stays without ``zarr.json`` until :func:`create_group` writes the group and its commit
+    record in one write: a reader never sees a group without its record.
     """
     try:
-        if not read_only and not create:
+        if not read_only:
             try:
                 return zarr.open_group(store, mode="r+", zarr_format=3)
             except (FileNotFoundError, zarr.errors.GroupNotFoundError):
                 return None
-        return zarr.open_group(store, mode="r" if read_only else "a", zarr_format=3)
+        return zarr.open_group(store, mode="r", zarr_format=3)
     except (FileNotFoundError, zarr.errors.GroupNotFoundError) as err:
         raise FileNotFoundError(f"No Zarr store found at {store}: {err}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as err:  # a damaged commit record, not a foreign store

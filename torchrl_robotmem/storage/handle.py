@@ -79,7 +79,7 @@ class StoreHandle:
         elif not self.read_only and isinstance(self.path, str) and _backend.is_url(self.path):
             self.lock = _backend.url_writer_lock(self.path, self.storage_options)
         # a new store gets its group together with its commit record (create): no empty group in between
-        self.group = _backend.open_group(self.store, read_only=self.read_only, create=False)
+        self.group = _backend.open_group(self.store, read_only=self.read_only)
 
     def check_format(self, attrs: dict) -> None:
         """Raises unless ``attrs`` carry a format marker this version reads."""
