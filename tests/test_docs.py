@@ -74,3 +74,46 @@ def test_example_runs(script, tmp_path):
                              capture_output=True, text=True, timeout=300, env=env)
         assert out.returncode == 0, f"run {attempt}: {out.stderr[-3000:]}"
     assert "Traceback" not in out.stderr
+
+
+# -- links between the repository's markdown files --------------------------------------------------------
+
+_FENCE = re.compile(r"```.*?```", re.S)
+_LINK = re.compile(r"\]\(([^)\s]+)\)|^\[[^\]]+\]:\s*(\S+)", re.M)
+_HEADING = re.compile(r"^#{1,6}\s+(.*?)\s*#*\s*$", re.M)
+
+
+def _anchors(page: Path) -> set[str]:
+    """GitHub's heading anchors of ``page``: lower case, punctuation dropped, spaces to '-', repeats '-1', '-2'."""
+    seen: dict[str, int] = {}
+    out = set()
+    for title in _HEADING.findall(_FENCE.sub("", page.read_text())):
+        slug = re.sub(r"[^\w\- ]", "", title.strip().lower()).replace(" ", "-")
+        n = seen.get(slug, 0)
+        seen[slug] = n + 1
+        out.add(slug if n == 0 else f"{slug}-{n}")
+    return out
+
+
+def _markdown_files() -> list[Path]:
+    tracked = subprocess.run(["git", "ls-files", "*.md"], cwd=ROOT, capture_output=True, text=True)
+    if tracked.returncode == 0 and tracked.stdout.strip():
+        return [ROOT / p for p in tracked.stdout.split()]
+    return [p for p in ROOT.rglob("*.md") if not {".venv", "bench_results", "outputs"} & set(p.parts)]
+
+
+def test_markdown_links_resolve():
+    """Every relative link of a tracked .md file names a file that exists, and a heading that exists in it."""
+    broken = []
+    for page in _markdown_files():
+        for match in _LINK.finditer(_FENCE.sub("", page.read_text())):
+            target = match.group(1) or match.group(2)
+            if target.startswith(("http://", "https://", "mailto:")):
+                continue
+            path, _, anchor = target.partition("#")
+            dest = (page.parent / path).resolve() if path else page
+            if not dest.exists():
+                broken.append(f"{page.relative_to(ROOT)}: {target} (no such file)")
+            elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
+                broken.append(f"{page.relative_to(ROOT)}: {target} (no heading with that anchor in {dest.name})")
+    assert not broken, "broken links:\n" + "\n".join(broken)
