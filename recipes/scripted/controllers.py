@@ -144,6 +144,20 @@ class _Controller:
         self.obj0[i] = obs[3:6]
         self.goal[i] = goal
 
+    #: phases of the state machine (the width of :meth:`features`' one-hot part)
+    NUM_PHASES = 5
+
+    def features(self) -> np.ndarray:
+        """The controller's episode state, ``[N, NUM_PHASES + 1]`` float32: its phase one-hot and ``t / 50``.
+
+        With the observation, what a learned residual on this controller needs to
+        be Markov (:mod:`recipes.residual`): the phase is not in the env's state.
+        """
+        out = np.zeros((self.num_envs, self.NUM_PHASES + 1), dtype=np.float32)
+        out[np.arange(self.num_envs), self.phase] = 1.0
+        out[:, -1] = self.t / 50.0
+        return out
+
     def act(self, obs: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """Actions ``[N, 4]`` for observations ``[N, 25]`` (float64 in, float32 out)."""
         out = np.zeros((self.num_envs, 4), dtype=np.float32)
