@@ -195,6 +195,12 @@ def test_paired_compares_two_arms_goal_by_goal(tmp_path):
         paired.main(["--frames", "250", f"a={runs['a', 0]}", f"b={runs['b', 0]}"])
     with pytest.raises(ValueError, match="no seed in both arms"):
         paired.main(["--frames", "500", f"a={runs['a', 0]}", f"b={runs['b', 1]}"])
+    # an arm read at another evaluation: the same runs at 500 frames against their own first evaluation
+    itself = paired.main(["--frames", "500", f"later={runs['a', 0]},{runs['a', 1]}",
+                          f"first@0={runs['a', 0]},{runs['a', 1]}"])
+    assert itself["pooled"]["b"] == 0.0 and (itself["test"]["a_only"], itself["test"]["b_only"]) == (14, 0)
+    with pytest.raises(SystemExit):
+        paired.main(["--frames", "500", f"a@x={runs['a', 0]}", f"b={runs['b', 0]}"])
 
 
 def test_recall_from_another_memory_read_only(tmp_path):

@@ -95,7 +95,8 @@ def test_recalled_params_come_from_the_memory(tmp_path):
         recalled_params("push", str(tmp_path / "empty.zarr"))
 
 
-def test_recipe_starts_as_the_recalled_controller_and_keeps_its_transitions(tmp_path):
+@pytest.mark.parametrize("actor_update", ["sac", "crr"])
+def test_recipe_starts_as_the_recalled_controller_and_keeps_its_transitions(tmp_path, actor_update):
     memory = str(tmp_path / "scripted.zarr")
     collect("push", 6, memory, noise=1.0, seed=0)
     run = tmp_path / "run"
@@ -103,6 +104,7 @@ def test_recipe_starts_as_the_recalled_controller_and_keeps_its_transitions(tmp_
         [sys.executable, "-m", "recipes.residual.train", f"base.memory={memory}", "collector.total_frames=200",
          "collector.warmup_frames=100", "collector.actor_freeze_frames=150", "optim.batch_size=8",
          "network.hidden_sizes=[16,16]", "logger.eval_iter=100", "logger.eval_episodes=2",
+         f"algo.actor_update={actor_update}",
          f"memory.path={tmp_path / 'run.zarr'}", f"hydra.run.dir={run}"],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
     )
@@ -124,6 +126,9 @@ def test_recipe_starts_as_the_recalled_controller_and_keeps_its_transitions(tmp_
     assert {"base_action", "base_state"} <= set(stored.keys()) and ("next", "base_action") in stored.keys(True)
     assert float(stored["action"].abs().max()) < 1.0  # the residual, inside its range, not the env's action
     assert "loc" not in stored.keys()
+    logged = {p.stem for p in run.glob("her_logging/*/scalars/train/*.csv")}
+    assert {"loss_actor", "loss_qvalue", "residual_sq"} <= logged  # the actor moved after actor_freeze_frames
+    assert ("crr_kept" in logged) == (actor_update == "crr")
 
 
 def test_recipe_refuses_a_memory_that_already_holds_transitions(tmp_path):

@@ -39,6 +39,7 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from recipes.her.prior_memory.bc import CRRActorLoss
 from recipes.her.run_record import CpuClock, first_reach, record_episodes
 from recipes.her.utils import GoalNormalizer, evaluate, make_logger, make_storage, mean_losses
 from recipes.residual.agent import AGENT_INPUTS, make_agent, make_loss, make_optimizers
@@ -64,17 +65,27 @@ def make_envs(cfg: DictConfig):
 
 
 def update(loss_module, optimizers: dict, target_updater, batch, actor_frozen: bool,
-           residual_penalty: float = 0.0) -> torch.Tensor:
-    """One SAC step; with ``actor_frozen`` only the critics move (the entropy coefficient waits too).
+           residual_penalty: float = 0.0, crr: CRRActorLoss | None = None) -> torch.Tensor:
+    """One step: the critics always, the actor (and SAC's entropy coefficient) unless ``actor_frozen``.
 
-    ``residual_penalty``: weight of the mean squared deterministic residual, added to the actor's loss
-    (keeps the policy near the controller where the critic sees no gain in leaving it).
+    The actor's loss is SAC's (``-Q(s, pi(s))`` and entropy) or, with ``crr``, critic-regularised regression
+    onto the stored residuals the critics rate above the actor's (``algo.actor_update=crr``; the entropy
+    coefficient stays where it is: the policy's spread is not trained). ``residual_penalty``: weight of the
+    mean squared deterministic residual, added to the actor's loss.
     """
     losses = loss_module(batch)
-    names = ["loss_qvalue"] if actor_frozen else ["loss_qvalue", "loss_actor", "loss_alpha"]
-    groups = ["critic"] if actor_frozen else ["critic", "actor", "alpha"]
-    total = sum(losses[n] for n in names)
+    total = losses["loss_qvalue"]
+    groups = ["critic"]
     if not actor_frozen:
+        if crr is not None:
+            out = crr(batch)
+            losses.set("loss_actor", out["loss_actor"])
+            losses.set("crr_kept", out["crr_kept"].detach())
+            groups += ["actor"]
+            total = total + out["loss_actor"]
+        else:
+            groups += ["actor", "alpha"]
+            total = total + losses["loss_actor"] + losses["loss_alpha"]
         residual = deterministic_residual(loss_module, batch)
         losses.set("residual_sq", residual.pow(2).sum(-1).mean().detach())
         if residual_penalty:
@@ -86,6 +97,7 @@ def update(loss_module, optimizers: dict, target_updater, batch, actor_frozen: b
         optimizers[g].step()
     target_updater.step()
     keys = ["loss_qvalue", "loss_actor", "loss_alpha"] + ([] if actor_frozen else ["residual_sq"])
+    keys += ["crr_kept"] if crr is not None and not actor_frozen else []
     return losses.select(*keys).detach()
 
 
@@ -114,6 +126,9 @@ def main(cfg: DictConfig) -> None:
     model = make_agent(cfg, train_env, normalizer)
     loss_module, target_updater = make_loss(cfg, model)
     optimizers = make_optimizers(cfg, loss_module)
+    if cfg.algo.actor_update not in ("sac", "crr"):
+        raise ValueError(f"algo.actor_update must be sac or crr, got {cfg.algo.actor_update!r}.")
+    crr = CRRActorLoss(loss_module) if cfg.algo.actor_update == "crr" else None
     checkpoint = Checkpoint(loss_module=loss_module, normalizer=normalizer, **optimizers)
     cpu = CpuClock()
     curve: list[tuple[int, float]] = []
@@ -154,12 +169,10 @@ def main(cfg: DictConfig) -> None:
         metrics = {}
         if state["frames"] >= cfg.collector.warmup_frames:
             frozen = state["frames"] <= cfg.collector.actor_freeze_frames
-            losses = [update(loss_module, optimizers, target_updater, buffer.sample(), frozen, cfg.algo.residual_penalty)
-                      for _ in range(max(1, int(frames * cfg.optim.utd_ratio)))]
+            losses = [update(loss_module, optimizers, target_updater, buffer.sample(), frozen,
+                             cfg.algo.residual_penalty, crr) for _ in range(max(1, int(frames * cfg.optim.utd_ratio)))]
             state["updates"] += len(losses)
-            metrics.update(mean_losses(torch.stack([x.exclude("residual_sq") for x in losses])))
-            if not frozen:
-                metrics["train/residual_sq"] = float(torch.stack([x["residual_sq"] for x in losses]).mean())
+            metrics.update(mean_losses(torch.stack(losses)))
             metrics["train/alpha"] = loss_module.log_alpha.exp().item()
         done = data["next", "done"].squeeze(-1)
         if done.any():

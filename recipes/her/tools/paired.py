@@ -12,6 +12,12 @@ the test of issue 27's recall ablations (``memory.recall.enabled``,
         "recall=runs/recall-s0,runs/recall-s1,runs/recall-s2" \\
         "control=runs/prior-s0,runs/prior-s1,runs/prior-s2"
 
+An arm's label may end in ``@FRAMES`` to read that arm at another evaluation,
+e.g. a run against its own first evaluation (``recipes/residual``: the learned
+residual at 30k frames against the controller it started from)::
+
+    python -m recipes.her.tools.paired --frames 30000 "residual=A-s0,A-s1" "controller@0=A-s0,A-s1"
+
 A run is its hydra directory or its archive (``recipes.her.tools.compare
 --archive``, which keeps the per-episode outcomes). It prints one markdown table
 (each arm's success per seed and pooled, the discordant pairs and the p-value)
@@ -25,7 +31,7 @@ import json
 from recipes.cross_env.stats import mcnemar, wilson
 from recipes.her.run_record import read_episodes
 
-__all__ = ["arm_outcomes", "compare_arms", "main"]
+__all__ = ["arm_outcomes", "compare_arms", "main", "parse_arm"]
 
 
 def arm_outcomes(run_dirs: list[str], frames: int) -> dict[int, list[int]]:
@@ -68,6 +74,25 @@ def compare_arms(a: dict[int, list[int]], b: dict[int, list[int]]) -> dict:
     }
 
 
+def parse_arm(spec: str, frames: int) -> tuple[str, list[str], int]:
+    """``label[@FRAMES]=run,run,...`` -> (label, runs, frames of the evaluation to read).
+
+    Example:
+        >>> parse_arm("controller@0=runs/a,runs/b", 30000)
+        ('controller@0', ['runs/a', 'runs/b'], 0)
+    """
+    if "=" not in spec:
+        raise ValueError(f"an arm is label[@FRAMES]=run_dir,run_dir,...; got {spec!r}")
+    name, dirs = spec.split("=", 1)
+    at = frames
+    if "@" in name:
+        try:
+            at = int(name.rsplit("@", 1)[1])
+        except ValueError:
+            raise ValueError(f"{name!r}: what follows @ must be a frame count, e.g. controller@0") from None
+    return name, [d for d in dirs.split(",") if d], at
+
+
 def table(names: tuple[str, str], frames: int, result: dict) -> str:
     a, b = names
     lines = [f"| at {frames} frames | " + " | ".join(f"seed {s}" for s in result["seeds"]) + " | pooled | p (McNemar) |",
@@ -84,15 +109,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m recipes.her.tools.paired", description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, required=True, help="the evaluation to compare (frames collected)")
     parser.add_argument("--out", default=None, help="write the result, with the outcomes, to this JSON file")
-    parser.add_argument("arms", nargs=2, help="label=run,run,... (each run's hydra.run.dir or its archived .json)")
+    parser.add_argument("arms", nargs=2, help="label[@FRAMES]=run,run,... (each run's hydra.run.dir or its archived "
+                                              ".json; @FRAMES reads that arm at another evaluation)")
     args = parser.parse_args(argv)
     names, outcomes = [], []
     for spec in args.arms:
-        if "=" not in spec:
-            parser.error(f"an arm is label=run_dir,run_dir,...; got {spec!r}")
-        name, dirs = spec.split("=", 1)
+        try:
+            name, dirs, at = parse_arm(spec, args.frames)
+        except ValueError as err:
+            parser.error(str(err))
         names.append(name)
-        outcomes.append(arm_outcomes([d for d in dirs.split(",") if d], args.frames))
+        outcomes.append(arm_outcomes(dirs, at))
     result = compare_arms(*outcomes)
     print(table(tuple(names), args.frames, result))
     if args.out:
