@@ -141,3 +141,40 @@ def test_recipe_refuses_a_memory_that_already_holds_transitions(tmp_path):
         cwd=ROOT, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "already holds 1 transitions" in proc.stderr
+
+
+def test_improve_grows_the_memory_and_starts_as_the_recalled_controller(tmp_path):
+    """recipes.scripted.improve: the prior is copied, never written; new episodes join the run's memory with their
+    (explored) parameters; the first evaluation is the controller recalled from the prior."""
+    from recipes.scripted.controllers import default_params
+    from recipes.scripted.improve import improve
+    from recipes.scripted.recall_params import STRIKE_RECALLED
+
+    prior = str(tmp_path / "prior.zarr")
+    collect("push", 6, prior, noise=1.0, seed=0)
+    before = ZarrStorage(prior, read_only=True)[:]
+    out = improve("push", prior, str(tmp_path / "run.zarr"), str(tmp_path / "run"), frames=200, seed=0,
+                  eval_every=100, eval_episodes=2)
+    assert out["frames"] == 200 and out["memory_rows_after"] == 500
+    after = ZarrStorage(prior, read_only=True)[:]
+    assert after.shape == before.shape and torch.equal(after["action"], before["action"])  # the prior: unchanged
+    run = ZarrStorage(str(tmp_path / "run.zarr"), read_only=True)[:]
+    assert torch.equal(run[:300]["action"], before["action"])  # copied first
+    new = run[300:]
+    defaults = default_params("push")
+    for name in ("strike_length", "strike_reach"):  # not recalled: the defaults, unexplored
+        assert bool((new["params", name] == getattr(defaults, name)).all())
+    aims = new["params", "aim_angle"][::50]
+    assert "aim_angle" in STRIKE_RECALLED and torch.unique(aims).numel() == 4  # explored: one draw an episode
+    evals = [json.loads(line) for line in (tmp_path / "run" / "eval_episodes.jsonl").read_text().splitlines()]
+    assert [e["frames"] for e in evals] == [0, 100, 200]
+    env = make_env("FetchPush-v4", 2, seed=10_000)
+    try:
+        env.set_seed(10_000)
+        td = env.rollout(50, ScriptedPolicy("push", recalled_params("push", prior), num_envs=2),
+                         break_when_any_done=False)
+        assert evals[0]["success"] == (td["next", "is_success"][:, -1] > 0.5).int().tolist()
+    finally:
+        env.close()
+    with pytest.raises(FileExistsError, match="must be new"):
+        improve("push", prior, str(tmp_path / "run.zarr"), str(tmp_path / "again"), frames=100)

@@ -14,15 +14,14 @@ Needs ``bench_results/prior/scripted-push-500.zarr``
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 
 import numpy as np
 
 from recipes.cross_env.run import PREREGISTERED
-from recipes.scripted.collect import episode_geometry, gym_episodes
+from recipes.scripted.collect import gym_episodes
 from recipes.scripted.controllers import default_params
-from recipes.scripted.recall_params import episode_index, mean_params, recall_episodes
+from recipes.scripted.recall_params import episode_index, recaller
 from torchrl_robotmem import ZarrStorage
 
 
@@ -36,11 +35,10 @@ def main() -> dict:
     names = PREREGISTERED["supplied"]  # the parameters the cross-env experiment recalls
     index = episode_index(storage, tuple(PREREGISTERED["key"].split("/")))
     base = default_params("push")
+    params = recaller("push", index, args.k, names)
 
     def recalled(e, obs, goal):
-        query = float(episode_geometry("push", obs, goal)["scaled_distance"][0])
-        means = mean_params(recall_episodes(index, query, args.k), names)
-        return base if means is None else dataclasses.replace(base, **means)
+        return params(obs, goal)
 
     seeds = [20_000_000 + i for i in range(args.episodes)]
     out = {}

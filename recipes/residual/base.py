@@ -11,7 +11,6 @@ goal geometry (:func:`recalled_params`), as docs/cross_env.md does.
 """
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -20,18 +19,11 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import Transform
 
-from recipes.scripted.collect import episode_geometry
 from recipes.scripted.controllers import default_params, make_controller, task_of
-from recipes.scripted.recall_params import episode_index, mean_params, recall_episodes
+from recipes.scripted.recall_params import episode_index, recaller
 from torchrl_robotmem import ZarrStorage
 
-__all__ = ["RECALLED", "ScriptedBase", "recalled_params"]
-
-#: what recall supplies (how to strike); where the stroke ends stays at the task's default.
-#: The same names and key as the cross-env experiment (``recipes.cross_env.run.PREREGISTERED``).
-RECALLED = ("approach_offset", "approach_height", "strike_height", "aim_angle", "strike_speed")
-_GEOMETRY_KEY = ("geometry", "scaled_distance")
-
+__all__ = ["ScriptedBase", "recalled_params"]
 
 def recalled_params(task: str, memory: str | None, k: int = 5) -> Callable[[np.ndarray, np.ndarray], object]:
     """``(observation, desired_goal) -> params``: the mean parameters of the ``k`` successful episodes nearest in goal
@@ -43,21 +35,14 @@ def recalled_params(task: str, memory: str | None, k: int = 5) -> Callable[[np.n
         >>> fn(np.zeros(25), np.zeros(3)).strike_speed
         0.5
     """
-    base = default_params(task)
     if memory is None:
+        base = default_params(task)
         return lambda obs, goal: base
     storage = ZarrStorage(memory, read_only=True)
     if len(storage) == 0:
         raise ValueError(f"the scripted memory {memory!r} is empty: collect one first "
                          "(python -m recipes.scripted.collect env=push episodes=500 noise=1 path=...).")
-    index = episode_index(storage, _GEOMETRY_KEY)
-
-    def params(obs: np.ndarray, goal: np.ndarray):
-        query = float(episode_geometry(task, obs, goal)["scaled_distance"][0])
-        means = mean_params(recall_episodes(index, query, k), RECALLED)
-        return base if means is None else dataclasses.replace(base, **means)
-
-    return params
+    return recaller(task, episode_index(storage), k)
 
 
 class ScriptedBase(Transform):
