@@ -141,6 +141,11 @@ def test_recipe_refuses_a_memory_that_already_holds_transitions(tmp_path):
         cwd=ROOT, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "already holds 1 transitions" in proc.stderr
+    bad = tmp_path / "bad.zarr"
+    proc = subprocess.run(
+        [sys.executable, "-m", "recipes.residual.train", "algo.actor_update=ppo", f"memory.path={bad}",
+         f"hydra.run.dir={tmp_path / 'b'}"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0 and "algo.actor_update must be sac or crr" in proc.stderr and not bad.exists()
 
 
 def test_improve_grows_the_memory_and_starts_as_the_recalled_controller(tmp_path):

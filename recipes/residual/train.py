@@ -115,6 +115,8 @@ def main(cfg: DictConfig) -> None:
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     memory_path = to_absolute_path(cfg.memory.path)
+    if cfg.algo.actor_update not in ("sac", "crr"):  # before anything is written
+        raise ValueError(f"algo.actor_update must be sac or crr, got {cfg.algo.actor_update!r}.")
     logger = make_logger(cfg)
     storage = make_storage(cfg, memory_path)  # ZarrStorage at memory.path (or any Storage _target_)
     buffer = TensorDictReplayBuffer(storage=storage, sampler=RandomSampler(), batch_size=cfg.optim.batch_size)
@@ -126,8 +128,6 @@ def main(cfg: DictConfig) -> None:
     model = make_agent(cfg, train_env, normalizer)
     loss_module, target_updater = make_loss(cfg, model)
     optimizers = make_optimizers(cfg, loss_module)
-    if cfg.algo.actor_update not in ("sac", "crr"):
-        raise ValueError(f"algo.actor_update must be sac or crr, got {cfg.algo.actor_update!r}.")
     crr = CRRActorLoss(loss_module) if cfg.algo.actor_update == "crr" else None
     checkpoint = Checkpoint(loss_module=loss_module, normalizer=normalizer, **optimizers)
     cpu = CpuClock()
@@ -145,7 +145,8 @@ def main(cfg: DictConfig) -> None:
         if logger is not None:
             logger.log_metrics(metrics, frames)
         with cpu.paused():
-            storage.flush() if hasattr(storage, "flush") else None
+            if hasattr(storage, "flush"):
+                storage.flush()
             checkpoint.save(memory_path + "-agent", metadata={"frames": frames, "curve": [list(p) for p in curve]})
         return metrics["eval/success_rate"]
 
