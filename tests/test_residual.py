@@ -22,6 +22,18 @@ from recipes.scripted.controllers import ScriptedPolicy  # noqa: E402
 from torchrl_robotmem import ZarrStorage, make_env  # noqa: E402
 
 
+def _controller_outcomes(memory: str, episodes: int = 2) -> list[int]:
+    """Per-episode success of the controller recalled from ``memory`` on recipes/her's seed-0 evaluation goals."""
+    env = make_env("FetchPush-v4", episodes, seed=10_000)
+    try:
+        env.set_seed(10_000)
+        td = env.rollout(50, ScriptedPolicy("push", recalled_params("push", memory), num_envs=episodes),
+                         break_when_any_done=False)
+        return (td["next", "is_success"][:, -1] > 0.5).int().tolist()
+    finally:
+        env.close()
+
+
 def _base_policy(td):
     return td.set("action", td["base_action"].clone())
 
@@ -113,15 +125,7 @@ def test_recipe_starts_as_the_recalled_controller_and_keeps_its_transitions(tmp_
     assert summary["frames"] == 200 and summary["updates"] == 200 and summary["memory_rows_after"] == 200
     evals = [json.loads(line) for line in (run / "eval_episodes.jsonl").read_text().splitlines()]
     assert [e["frames"] for e in evals] == [0, 100, 200]
-    # the first evaluation is the recalled controller's own, on recipes/her's goals (seed + 10000)
-    env = make_env("FetchPush-v4", 2, seed=10_000)
-    try:
-        env.set_seed(10_000)
-        td = env.rollout(50, ScriptedPolicy("push", recalled_params("push", memory), num_envs=2),
-                         break_when_any_done=False)
-        assert evals[0]["success"] == (td["next", "is_success"][:, -1] > 0.5).int().tolist()
-    finally:
-        env.close()
+    assert evals[0]["success"] == _controller_outcomes(memory)  # the first policy is the recalled controller
     stored = ZarrStorage(str(tmp_path / "run.zarr"), read_only=True)[:]
     assert {"base_action", "base_state"} <= set(stored.keys()) and ("next", "base_action") in stored.keys(True)
     assert float(stored["action"].abs().max()) < 1.0  # the residual, inside its range, not the env's action
@@ -173,13 +177,6 @@ def test_improve_grows_the_memory_and_starts_as_the_recalled_controller(tmp_path
     assert "aim_angle" in STRIKE_RECALLED and torch.unique(aims).numel() == 4  # explored: one draw an episode
     evals = [json.loads(line) for line in (tmp_path / "run" / "eval_episodes.jsonl").read_text().splitlines()]
     assert [e["frames"] for e in evals] == [0, 100, 200]
-    env = make_env("FetchPush-v4", 2, seed=10_000)
-    try:
-        env.set_seed(10_000)
-        td = env.rollout(50, ScriptedPolicy("push", recalled_params("push", prior), num_envs=2),
-                         break_when_any_done=False)
-        assert evals[0]["success"] == (td["next", "is_success"][:, -1] > 0.5).int().tolist()
-    finally:
-        env.close()
+    assert evals[0]["success"] == _controller_outcomes(prior)
     with pytest.raises(FileExistsError, match="must be new"):
         improve("push", prior, str(tmp_path / "run.zarr"), str(tmp_path / "again"), frames=100)

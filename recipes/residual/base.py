@@ -25,6 +25,7 @@ from torchrl_robotmem import ZarrStorage
 
 __all__ = ["ScriptedBase", "recalled_params"]
 
+
 def recalled_params(task: str, memory: str | None, k: int = 5) -> Callable[[np.ndarray, np.ndarray], object]:
     """``(observation, desired_goal) -> params``: the mean parameters of the ``k`` successful episodes nearest in goal
     geometry in the scripted memory at ``memory`` (read-only); the task's defaults with ``memory=None`` or where the
@@ -81,9 +82,8 @@ class ScriptedBase(Transform):
         return self.controller
 
     def _inputs(self, td: TensorDictBase) -> tuple[np.ndarray, np.ndarray]:
-        obs = td.get("observation").detach().cpu().double().numpy().reshape(-1, td.get("observation").shape[-1])
-        goal = td.get("desired_goal").detach().cpu().double().numpy().reshape(-1, td.get("desired_goal").shape[-1])
-        return obs, goal
+        obs, goal = (td.get(key).detach().cpu().double() for key in ("observation", "desired_goal"))
+        return obs.reshape(-1, obs.shape[-1]).numpy(), goal.reshape(-1, goal.shape[-1]).numpy()
 
     def _write(self, td: TensorDictBase, action: np.ndarray) -> TensorDictBase:
         batch = td.batch_size
