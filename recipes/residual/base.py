@@ -95,15 +95,12 @@ class ScriptedBase(Transform):
         obs, goal = self._inputs(tensordict_reset)
         ctl = self._controller_for(obs.shape[0])
         mask = None if tensordict is None else tensordict.get("_reset", None)
-        rows = range(obs.shape[0]) if mask is None else np.flatnonzero(mask.reshape(obs.shape[0], -1).any(-1).numpy())
-        keep = (ctl.phase.copy(), ctl.t.copy())
+        rows = np.arange(obs.shape[0]) if mask is None else np.flatnonzero(mask.reshape(obs.shape[0], -1).any(-1).numpy())
         for i in rows:
             ctl.reset(i, obs[i], goal[i], self.params_of(obs[i], goal[i]))
-        action = ctl.act(obs, goal)  # the first action of the reset rows
-        others = np.setdiff1d(np.arange(obs.shape[0]), np.asarray(list(rows), dtype=np.int64))
-        if others.size and self._last is not None:  # a partial reset: the running episodes are not stepped here
-            ctl.phase[others], ctl.t[others] = keep[0][others], keep[1][others]
-            action[others] = self._last[others]
+        first = ctl.act(obs, goal, rows)  # the first action of the reset rows; the running episodes are not stepped
+        action = first if self._last is None or len(rows) == obs.shape[0] else self._last.copy()
+        action[rows] = first[rows]
         self._last = action
         return self._write(tensordict_reset, action)
 

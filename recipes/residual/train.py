@@ -86,10 +86,10 @@ def update(loss_module, optimizers: dict, target_updater, batch, actor_frozen: b
         else:
             groups += ["actor", "alpha"]
             total = total + losses["loss_actor"] + losses["loss_alpha"]
-        residual = deterministic_residual(loss_module, batch)
-        losses.set("residual_sq", residual.pow(2).sum(-1).mean().detach())
+        residual_sq = deterministic_residual(loss_module, batch).pow(2).sum(-1).mean()
+        losses.set("residual_sq", residual_sq.detach())
         if residual_penalty:
-            total = total + residual_penalty * residual.pow(2).sum(-1).mean()
+            total = total + residual_penalty * residual_sq
     for g in groups:
         optimizers[g].zero_grad(set_to_none=True)
     total.backward()

@@ -158,10 +158,13 @@ class _Controller:
         out[:, -1] = self.t / 50.0
         return out
 
-    def act(self, obs: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        """Actions ``[N, 4]`` for observations ``[N, 25]`` (float64 in, float32 out)."""
+    def act(self, obs: np.ndarray, goal: np.ndarray, rows=None) -> np.ndarray:
+        """Actions ``[N, 4]`` for observations ``[N, 25]`` (float64 in, float32 out).
+
+        ``rows``: step only these envs (their state advances); the others' actions are zeros.
+        """
         out = np.zeros((self.num_envs, 4), dtype=np.float32)
-        for i in range(self.num_envs):
+        for i in range(self.num_envs) if rows is None else rows:
             out[i] = np.clip(self._act_one(i, obs[i], goal[i]), -1.0, 1.0)
             self.t[i] += 1
         return out
