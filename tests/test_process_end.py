@@ -318,3 +318,49 @@ def test_exit_hook_reports_a_commit_it_cannot_make(tmp_path):
     """)
     assert res.returncode == 0, res.stderr
     assert "torchrl_robotmem: could not flush" in res.stderr and "m.zarr" in res.stderr
+
+
+def test_a_forked_child_exits_reads_and_is_refused_writes_and_the_parent_loses_nothing(tmp_path):
+    """A child forked while rows are uncommitted (``multiprocessing`` with fork, DataLoader workers) is not the writer.
+
+    Its exit runs no flush (it used to block for ever on a lock inherited mid-use, and the parent on it), it reads
+    the rows it inherited, and a write through the inherited handle is a clear error. Every row stays the
+    parent's to commit: they are all in the store after the parent's own exit.
+    """
+    res, completed, path = _run_child(tmp_path, """
+        import multiprocessing as mp
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000, **ONLY_FLUSH_COMMITS), batch_size=4)
+        extend_batches(rb, 3)  # uncommitted: only a flush commits
+
+        def child(mode):
+            if mode == "read":
+                assert rb.storage[250]["obs"].item() == 250.0
+            elif mode == "write":
+                try:
+                    extend_batches(rb, 1, start=3)
+                except RuntimeError as err:
+                    print("refused:", err, flush=True)
+                    sys.exit(7)
+            elif mode == "flush":
+                try:
+                    rb.storage.flush()
+                except RuntimeError as err:
+                    print("refused:", err, flush=True)
+                    sys.exit(8)
+
+        for mode in ("exit", "read", "write", "flush"):
+            p = mp.get_context("fork").Process(target=child, args=(mode,))
+            p.start()
+            p.join(60)  # the child's exit is what is tested: a hang is a failure, not a wait
+            print(mode, p.exitcode, flush=True)
+            if p.exitcode is None:
+                p.kill()
+        extend_batches(rb, 1, start=3)  # the parent is still the writer
+    """)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert [ln for ln in lines if not ln.startswith("refused")] == ["exit 0", "read 0", "write 7", "flush 8"]
+    refusals = [ln for ln in lines if ln.startswith("refused")]
+    assert len(refusals) == 2 and all("is a forked child of it" in r and "read_only=True" in r for r in refusals)
+    assert completed == 4
+    _check_rows(path, completed)

@@ -91,6 +91,7 @@ def incomplete_build_error(path: Any, code: int = 2) -> CLIError | None:
 def open_memory(path: Any):
     """A read-only :class:`~torchrl_robotmem.ZarrStorage` on ``path``, or a :class:`CLIError` saying why not."""
     from torchrl_robotmem.storage import ZarrStorage, is_url, normalize_path
+    from torchrl_robotmem.storage.errors import LinkError
     from torchrl_robotmem.storage.format import FORMAT_MARKER
 
     incomplete = incomplete_build_error(path)
@@ -100,20 +101,25 @@ def open_memory(path: Any):
     if isinstance(name, str) and not is_url(name):
         if not os.path.exists(name):
             raise not_a_memory(path, "no such file or directory")
-        if os.path.isdir(name) and not os.path.exists(os.path.join(name, "zarr.json")):
-            raise not_a_memory(path, "a directory without zarr.json: not a Zarr store")
+        record = os.path.join(name, "zarr.json")
         if os.path.isdir(name):
-            try:
-                with open(os.path.join(name, "zarr.json")) as f:
-                    meta = json.load(f)
-            except (OSError, ValueError) as err:
-                raise not_a_memory(path, f"unreadable zarr.json: {err}") from None
-            if meta.get("node_type") != "group" or FORMAT_MARKER not in (meta.get("attributes") or {}):
-                raise not_a_memory(path, f"a Zarr {meta.get('node_type', 'node')} without the {FORMAT_MARKER!r} attribute")
+            if not os.path.lexists(record):
+                raise not_a_memory(path, "a directory without zarr.json: not a Zarr store")
+            if not os.path.islink(record):  # a link is never read: the open below refuses the store, naming it
+                try:
+                    with open(record) as f:
+                        meta = json.load(f)
+                except (OSError, ValueError) as err:
+                    raise not_a_memory(path, f"unreadable zarr.json: {err}") from None
+                if meta.get("node_type") != "group" or FORMAT_MARKER not in (meta.get("attributes") or {}):
+                    raise not_a_memory(path, f"a Zarr {meta.get('node_type', 'node')} without the {FORMAT_MARKER!r} "
+                                             "attribute")
         elif not name.endswith(".zip"):
             raise not_a_memory(path, "a file, not a Zarr store directory or *.zip")
     try:
         return ZarrStorage(path, read_only=True)
+    except LinkError as err:
+        raise CLIError(str(err), code=1) from None
     except (FileNotFoundError, ValueError, OSError) as err:
         raise not_a_memory(path, str(err)) from None
 

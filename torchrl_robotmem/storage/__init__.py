@@ -29,6 +29,7 @@ from ._backend import (  # the store helpers cli/ and memory.py use, public here
     key_to_path,
     normalize_path,
     path_to_key,
+    refuse_links,
     store_exists,
     store_size_bytes,
     torch_dtype,
@@ -38,5 +39,5 @@ from .zarr_storage import ZarrCheckpointer, ZarrStorage, component_group, flush_
 
 __all__ = [
     "TAG_KEYS", "ZarrCheckpointer", "ZarrStorage", "component_group", "flush_before_close", "is_url", "key_to_path", "normalize_path", "path_to_key",
-    "store_exists", "store_size_bytes", "torch_dtype",
+    "refuse_links", "store_exists", "store_size_bytes", "torch_dtype",
 ]

@@ -21,7 +21,7 @@ import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec, ZstdCodec
 from zarr.core.sync import sync
 
-from .errors import IntegrityError, Problem
+from .errors import IntegrityError, LinkError, Problem
 from .format import FORMAT_MARKER, FORMAT_VERSION  # noqa: F401 - re-exported: the format lives in .format
 
 _TORCH2NP = {
@@ -171,7 +171,7 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
         from zarr.storage import FsspecStore
 
         return FsspecStore.from_url(spath, storage_options=fresh_listings(storage_options), read_only=read_only), None
-    p = Path(spath)
+    p = Path(os.path.realpath(spath))  # the root the user named is followed, once; no link below it is
     if p.exists() and not p.is_dir():
         raise ValueError(
             f"{spath!r} is a file, not a Zarr store. Pass a directory path, a "
@@ -186,6 +186,7 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
                 f"write into it: pass a new or empty directory, or an existing store."
             )
         p.mkdir(parents=True, exist_ok=True)
+    refuse_links(p, spath)
     from zarr.storage import LocalStore
 
     return LocalStore(str(p), read_only=read_only), p
@@ -545,6 +546,53 @@ def url_writer_lock(url: str, storage_options: dict | None) -> S3Lease | None:
         stacklevel=3,
     )
     return None
+
+
+def links_below(directory: str | os.PathLike) -> list[tuple[str, str]]:
+    """``[(key, target)]`` of every symbolic link below ``directory`` (the directory itself is not looked at).
+
+    One ``os.scandir`` walk that follows no link; ``is_symlink`` comes from the directory entry itself,
+    so the walk costs a listing per directory, no ``stat`` per file. Hard links are not links here: a
+    hard-linked file is a file of the store like any other (``ZarrCheckpointer`` makes them), and no
+    write goes into an existing file (Zarr and the journal write a new file and rename it into place),
+    so a write never reaches the file's other names.
+
+    Example:
+        >>> import os, tempfile
+        >>> d = tempfile.mkdtemp()
+        >>> os.makedirs(d + "/obs/c"); os.symlink("/etc/hostname", d + "/obs/c/0")
+        >>> links_below(d)
+        [('obs/c/0', '/etc/hostname')]
+    """
+    root = os.fspath(directory)
+    out, stack = [], [root]
+    while stack:
+        try:
+            entries = list(os.scandir(stack.pop()))
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        for entry in entries:
+            if entry.is_symlink():
+                try:
+                    target = os.readlink(entry.path)
+                except OSError:
+                    target = "?"
+                out.append((os.path.relpath(entry.path, root).replace(os.sep, "/"), target))
+            elif entry.is_dir(follow_symlinks=False):
+                stack.append(entry.path)
+    return sorted(out)
+
+
+def refuse_links(directory: str | os.PathLike, name: Any) -> None:
+    """Raises :class:`LinkError` naming them if a symbolic link lies below the local store ``directory``.
+
+    Every reader and writer of a local store opens it through here (``open_store``, and ``verify`` /
+    ``repair`` / ``copy``), so no chunk, record or journal is read through a link that may leave the
+    store, and no commit writes through one.
+    """
+    links = links_below(directory)
+    if links:
+        raise LinkError(name, links)
 
 
 def remove_partial_files(directory: Path) -> int:

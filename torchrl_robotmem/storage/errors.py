@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["IntegrityError", "NotAMemoryError", "Problem"]
+__all__ = ["IntegrityError", "LinkError", "NotAMemoryError", "Problem"]
 
 #: what every damage message ends with: the commands that say more and mend the store
 HINT = "Run `robotmem verify {path}` for a full report and `robotmem repair {path}` to make it writable again."
@@ -29,7 +29,8 @@ class Problem:
         kind (str): ``"missing_chunk"``, ``"checksum"``, ``"undecodable"`` (a chunk),
             ``"metadata"`` (a ``zarr.json``), ``"attribute"`` (the commit record),
             ``"format"`` (a newer format), ``"journal"`` (a pending journal that cannot be
-            replayed as it is) or ``"capacity"`` (sizes no machine here can hold).
+            replayed as it is), ``"capacity"`` (sizes no machine here can hold) or ``"link"`` (a symbolic
+            link inside the store).
         what (str): what is wrong, in words.
         array (str, optional): the array path (``"next/observation"``).
         chunk (int, optional): the chunk index along the rows.
@@ -83,6 +84,32 @@ class IntegrityError(ValueError):
                 hint += " ZarrStorage(path, read_only=True, on_damage='warn') reads the intact rows."
         lines.append(f"{action} {hint}")
         super().__init__("\n".join(lines))
+
+
+class LinkError(IntegrityError):
+    """A local store holds symbolic links below its root: refused, since they could serve, copy or write files outside it.
+
+    The message is one line (the command line prints it as it is); ``problems`` has one
+    ``"link"`` :class:`Problem` per link, its ``key`` the link's path in the store.
+
+    Example:
+        >>> err = LinkError("m.zarr", [("obs/c/1", "/etc/passwd")])
+        >>> err.problems[0].key, "obs/c/1 -> '/etc/passwd'" in str(err), len(str(err).splitlines())
+        ('obs/c/1', True, 1)
+    """
+
+    def __init__(self, path: Any, links: list[tuple[str, str]]):
+        problems = [Problem("link", f"a symbolic link (to {target!r}): a store's files must lie inside it", key=key)
+                    for key, target in links]
+        shown = ", ".join(f"{key} -> {target!r}" for key, target in links[:3])
+        more = f" and {len(links) - 3} more" if len(links) > 3 else ""
+        ValueError.__init__(
+            self,
+            f"{path!r} holds {len(links)} symbolic link{'s' if len(links) != 1 else ''} ({shown}{more}): a memory's "
+            f"files must lie inside it, so it is refused (nothing was read through the links, nothing written). "
+            f"Replace each link by a copy of the file it names if you trust that file "
+            f"(cp --remove-destination \"$(readlink -f LINK)\" LINK), or remove it and run `robotmem repair {path}`.")
+        self.path, self.problems = path, problems
 
 
 class NotAMemoryError(ValueError):

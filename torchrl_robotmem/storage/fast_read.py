@@ -227,8 +227,8 @@ def _numpy(col: torch.Tensor) -> np.ndarray | None:
 
 
 def _read_file(name: str, buf: np.ndarray) -> np.ndarray:
-    """The bytes of file ``name`` (in ``buf`` when they fit)."""
-    with open(name, "rb", buffering=0) as f:
+    """The bytes of file ``name`` (in ``buf`` when they fit); a symbolic link is refused (``ELOOP``), never followed."""
+    with open(os.open(name, os.O_RDONLY | os.O_NOFOLLOW), "rb", buffering=0) as f:
         size = os.fstat(f.fileno()).st_size
         if size > buf.size:
             buf = np.empty(size, np.uint8)

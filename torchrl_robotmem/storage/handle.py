@@ -18,6 +18,7 @@ Example:
 """
 from __future__ import annotations
 
+import os
 import warnings
 import weakref
 from collections.abc import Callable
@@ -35,6 +36,8 @@ __all__ = ["StoreHandle"]
 # The writable handle of each store opened for writing in this process. A new
 # writable handle on the same store takes the writer over from the old one.
 _OPEN_WRITERS: dict[str, weakref.ref] = {}
+# A forked child inherits the handles but is not their writer: it starts with no writer of its own.
+os.register_at_fork(after_in_child=_OPEN_WRITERS.clear)
 
 
 class StoreHandle:
@@ -65,6 +68,12 @@ class StoreHandle:
         self.retired_by: str | None = None  # set when a newer writable handle took the writer over
         self.received = False  # the read-only copy a pickled storage arrives as
         self.flush: Callable[[], None] = lambda: None  # makes the owner's rows durable (before a handover)
+        self.pid = os.getpid()  # the process that opened it: a forked child inherits the handle, not the writer
+
+    @property
+    def inherited(self) -> bool:
+        """Whether this process is a forked child of the one that opened the handle (it may read, never write)."""
+        return os.getpid() != self.pid
 
     # -- opening ------------------------------------------------------------------------
 
@@ -197,6 +206,13 @@ class StoreHandle:
 
     def check_writable(self) -> None:
         """Raises, saying why and what to do, unless rows may be written through this handle."""
+        if self.inherited and not self.read_only:
+            raise RuntimeError(
+                f"This ZarrStorage ({self.path!r}) was opened for writing by process {self.pid}; this process "
+                f"({os.getpid()}) is a forked child of it (multiprocessing with fork, a DataLoader worker) and a "
+                f"store has one writer process. Write from process {self.pid}, or open "
+                f"ZarrStorage({self.path!r}, read_only=True) in the child to read it."
+            )
         if self.read_only and self.received:
             raise RuntimeError(
                 f"This ZarrStorage ({self.path!r}) is read_only: it is the copy another process "

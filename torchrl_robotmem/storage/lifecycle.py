@@ -47,6 +47,18 @@ _pending: list[tuple[int, Any]] = []  # signals that arrived inside a critical s
 _previous: dict[int, Any] = {}  # handlers we replaced
 
 
+def _forget_after_fork() -> None:
+    """In a forked child: no writer is the child's own, and no lock or signal state is shared with the parent."""
+    global _WRITERS, _lock, _depth
+    _WRITERS = weakref.WeakSet()
+    _lock = threading.Lock()  # may have been held by another thread at the fork
+    _depth = 0
+    _pending.clear()
+
+
+os.register_at_fork(after_in_child=_forget_after_fork)
+
+
 def register_writer(storage: Any) -> None:
     """Tracks a writable storage; installs the exit hook and signal handlers once."""
     global _installed

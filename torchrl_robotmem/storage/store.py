@@ -194,6 +194,8 @@ class MemoryStore:
         """Blocks until every row written so far is durable and committed."""
         if self.read_only or self.handle.closed:
             return
+        if self.handle.inherited:
+            self.handle.check_writable()  # raises: the writer process flushes, not a forked child
         self.engine.flush()
 
     def close(self) -> None:
@@ -203,6 +205,9 @@ class MemoryStore:
         error says which rows are lost; call ``flush`` first to keep them while the cause is fixed.
         """
         if self.handle.closed:
+            return
+        if self.handle.inherited:  # a forked child's copy: its rows, lock and commit thread are the parent's
+            self.handle.closed = True
             return
         self.close_components()
         try:

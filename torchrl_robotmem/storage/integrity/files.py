@@ -30,8 +30,7 @@ from .. import _backend
 from ..errors import NotAMemoryError, Problem
 from ..format import BACKUP_DIR, JOURNAL_DIR
 
-__all__ = ["array_metas", "delete_key", "get_bytes", "local_dir_of", "open_any", "read_group_attrs", "set_bytes",
-           "symlinks"]
+__all__ = ["array_metas", "delete_key", "get_bytes", "local_dir_of", "open_any", "read_group_attrs", "set_bytes"]
 
 
 def get_bytes(store: Any, key: str) -> bytes | None:
@@ -75,9 +74,10 @@ def open_any(path: Any, storage_options: dict | None, *, writable: bool = False)
     """
     name = _backend.normalize_path(path)
     if isinstance(name, str) and not _backend.is_url(name) and not name.endswith(".zip"):
+        name = os.path.realpath(name)  # the root the user named is followed; links below it are reported
         if not os.path.isdir(name):
             raise NotAMemoryError(f"{name!r} is not a directory" if os.path.exists(name) else f"{name!r} does not exist")
-        if not any(os.path.exists(os.path.join(name, *rel)) for rel in
+        if not any(os.path.lexists(os.path.join(name, *rel)) for rel in
                    (("zarr.json",), ("episode", "zarr.json"), ("_tensor", "zarr.json"))):
             raise NotAMemoryError(f"{name!r} holds no zarr.json: not a Zarr store")
         from zarr.storage import LocalStore
@@ -126,17 +126,3 @@ def read_group_attrs(store: Any) -> tuple[dict | None, Problem | None]:
 def local_dir_of(store: Any) -> Any:
     root = getattr(store, "root", None)
     return root if root is not None and os.path.isdir(os.fspath(root)) else None
-
-
-def symlinks(local_dir: Any) -> list[str]:
-    """Store keys of the symbolic links inside a local store (repair never writes through one)."""
-    out = []
-    root = os.fspath(local_dir)
-    for dirpath, dirs, files in os.walk(root):
-        for entry in dirs + files:
-            full = os.path.join(dirpath, entry)
-            if os.path.islink(full):
-                out.append(os.path.relpath(full, root).replace(os.sep, "/"))
-    return sorted(out)
-
-

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import datetime
 import json
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,13 +27,13 @@ import numpy as np
 import zarr
 
 from .. import _backend
-from ..errors import IntegrityError, Problem
+from ..errors import IntegrityError, LinkError, Problem
 from ..format import BACKUP_DIR, FORMAT_MARKER, dims, numel, writing_config
 from ..journal import replay_journal
 from .arrays import disagreement
 from .attributes import bad_attributes, check_attributes, is_int, unsafe_path
 from .capacity import capacity_problem
-from .files import array_metas, delete_key, get_bytes, open_any, read_group_attrs, set_bytes, symlinks
+from .files import array_metas, delete_key, get_bytes, open_any, read_group_attrs, set_bytes
 from .rebuild import data_problems, rebuild_array_meta, rebuild_attrs, ring_cursor, tag_maxima, written_extent
 from .verify import IntegrityReport, verify
 
@@ -177,10 +176,10 @@ def _refusals(before: IntegrityReport, store: Any, local_dir: Any) -> dict[str, 
     """
     name = before.path
     if local_dir is not None:
-        links = symlinks(local_dir)
+        links = _backend.links_below(local_dir)
         if links:
-            raise _refuse(name, [Problem("metadata", f"a symbolic link (to {os.readlink(os.path.join(local_dir, k))!r})",
-                                         key=k) for k in links], "repair writes only inside the store's folder")
+            raise _refuse(name, LinkError(name, links).problems, "repair writes only inside the store's folder "
+                          "(remove each link, then run repair again: its rows are then mended as missing)")
     attrs, _ = read_group_attrs(store)
     if attrs is None:
         attrs = rebuild_attrs(store, local_dir)

@@ -20,7 +20,7 @@ from typing import Any
 import zarr
 
 from .. import _backend
-from ..errors import NotAMemoryError, Problem
+from ..errors import LinkError, NotAMemoryError, Problem
 from ..format import FORMAT_MARKER, decode_chunks, dims
 from .arrays import check_arrays, check_journal, decode_journal_chunks
 from .attributes import check_attributes
@@ -102,6 +102,10 @@ def verify(path: Any, *, storage_options: dict | None = None) -> IntegrityReport
     store, local_dir = open_any(path, storage_options)
     name = str(_backend.normalize_path(path))
     report = IntegrityReport(name)
+    links = _backend.links_below(local_dir) if local_dir is not None else []
+    if links:  # nothing is read through them: a link may name any file, of this store or not
+        report.problems += LinkError(name, links).problems
+        return report
     attrs, problem = read_group_attrs(store)
     if problem is not None:
         if not array_metas(store, local_dir):

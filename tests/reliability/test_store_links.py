@@ -1,0 +1,221 @@
+"""Nothing a store holds reaches outside it: symbolic links inside a store are refused everywhere.
+
+A store is a folder, and folders are shared (tarballs, shared drives, NFS). A
+link inside one can name any file: another memory's chunk with a valid
+checksum, a private file, a directory elsewhere that a writer would write
+into. Each case here plants a real link in a real store and runs every path
+that reads or writes a store: ``ZarrStorage`` opened read-only and writable,
+``verify``, and the ``inspect`` / ``export`` / ``copy`` (local and to S3) /
+``repair`` commands. Each must refuse, naming the link; nothing the link names
+may appear in a result, and no file anywhere changes (the whole folder, the
+link targets included, is hashed before and after).
+
+The root itself may be a link (the path a user typed is followed once), and
+hard links are files of the store like any other: ``ZarrCheckpointer`` makes
+them, and a write never goes into an existing file, so the other names keep
+their bytes.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import sys
+
+import pytest
+import torch
+from _s3 import new_bucket, s3_server  # noqa: F401  (pytest fixtures)
+from tensordict import TensorDict
+from torchrl.data import TensorDictReplayBuffer
+
+from torchrl_robotmem import ZarrStorage
+from torchrl_robotmem.cli import main
+from torchrl_robotmem.samplers import PersistentPrioritizedSampler
+from torchrl_robotmem.storage.errors import LinkError
+from torchrl_robotmem.storage.integrity import verify
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX symbolic links")
+
+ROWS, CHUNK, MAX = 96, 32, 200
+SECRET = b"the private bytes of a file outside every store\n" * 20
+
+
+def _rows(n: int, offset: float) -> TensorDict:
+    i = torch.arange(n, dtype=torch.float32)
+    return TensorDict({"observation": i.unsqueeze(-1).expand(n, 3) + offset,
+                       "action": -i.unsqueeze(-1) - offset,
+                       ("next", "done"): ((i + 1) % 16 == 0).unsqueeze(-1),
+                       ("next", "is_success"): (i % 2 == 0).unsqueeze(-1)}, [n])
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    """Two memories of one layout (``b``'s rows are ``a``'s plus 5000), ``a`` with stored priorities."""
+    root = tmp_path_factory.mktemp("pristine")
+    for name, offset in (("a.zarr", 0.0), ("b.zarr", 5000.0)):
+        with ZarrStorage(str(root / name), MAX, chunk_rows=CHUNK, env="FetchPush-v4") as s:
+            rb = TensorDictReplayBuffer(storage=s, sampler=PersistentPrioritizedSampler(alpha=0.7, beta=0.5),
+                                        batch_size=8)
+            rb.extend(_rows(ROWS, offset))
+            rb.update_priority(torch.arange(ROWS), torch.linspace(0.5, 3.0, ROWS))
+            rb.sampler.flush()
+    return root
+
+
+@pytest.fixture
+def folder(pristine, tmp_path):
+    """A folder with the two memories, a private file and a spare directory beside them."""
+    root = tmp_path / "shared"
+    shutil.copytree(pristine, root)
+    (root / "secret.txt").write_bytes(SECRET)
+    return root
+
+
+def _hash_tree(path) -> dict:
+    out = {}
+    for dirpath, dirs, files in os.walk(path):
+        for entry in dirs + files:
+            full = os.path.join(dirpath, entry)
+            rel = os.path.relpath(full, path)
+            if os.path.islink(full):
+                out[rel] = "link:" + os.readlink(full)
+            elif os.path.isfile(full):
+                with open(full, "rb") as fh:
+                    out[rel] = hashlib.sha256(fh.read()).hexdigest()
+            else:
+                out[rel] = "dir"
+    return out
+
+
+def _first_file(directory) -> str:
+    for dirpath, _, files in sorted(os.walk(directory)):
+        for f in sorted(files):
+            return os.path.join(dirpath, f)
+    raise AssertionError(f"no file under {directory}")
+
+
+def _link_other_memorys_chunk(a, folder) -> str:
+    rel = os.path.join("observation", "c", "1", "0")
+    os.remove(a / rel)
+    os.symlink(folder / "b.zarr" / rel, a / rel)
+    return "observation/c/1/0"
+
+
+def _link_chunk_to_secret(a, folder) -> str:
+    rel = os.path.join("action", "c", "2", "0")
+    os.remove(a / rel)
+    os.symlink(folder / "secret.txt", a / rel)
+    return "action/c/2/0"
+
+
+def _link_extra_file(a, folder) -> str:
+    os.symlink(folder / "secret.txt", a / "README")
+    return "README"
+
+
+def _link_array_directory(a, folder) -> str:
+    shutil.move(str(a / "observation"), str(folder / "elsewhere"))
+    os.symlink(folder / "elsewhere", a / "observation")
+    return "observation"
+
+
+def _link_record(a, folder) -> str:
+    shutil.move(str(a / "zarr.json"), str(folder / "record.json"))
+    os.symlink(folder / "record.json", a / "zarr.json")
+    return "zarr.json"
+
+
+def _link_priority_chunk(a, folder) -> str:
+    chunk = _first_file(a / "_priority" / [d for d in sorted(os.listdir(a / "_priority")) if (a / "_priority" / d).is_dir()][0])
+    shutil.move(chunk, str(folder / "priority-chunk"))
+    os.symlink(folder / "priority-chunk", chunk)
+    return os.path.relpath(chunk, a).replace(os.sep, "/")
+
+
+CASES = {
+    "another memory's chunk, valid checksum": _link_other_memorys_chunk,
+    "a chunk naming a private file": _link_chunk_to_secret,
+    "an extra file": _link_extra_file,
+    "an array directory": _link_array_directory,
+    "the commit record zarr.json": _link_record,
+    "a chunk of the priority group": _link_priority_chunk,
+}
+
+
+@pytest.mark.parametrize("plant", list(CASES.values()), ids=list(CASES))
+def test_a_link_inside_a_store_is_refused_by_every_reader_and_writer(folder, tmp_path, capsys, plant):
+    a = folder / "a.zarr"
+    key = plant(a, folder)
+    before = _hash_tree(folder)
+
+    for read_only in (True, False):
+        with pytest.raises(LinkError, match=rf"holds 1 symbolic link \({key} -> "):
+            ZarrStorage(str(a), read_only=read_only)
+    report = verify(str(a))
+    assert not report.ok and [(p.kind, p.key) for p in report.errors] == [("link", key)]
+
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    capsys.readouterr()
+    for argv in (["verify", str(a)], ["inspect", str(a)], ["export", str(a), str(out_dir / "x.npz")],
+                 ["copy", str(a), str(out_dir / "c.zarr")], ["repair", str(a)]):
+        assert main(argv) == 1, argv
+        captured = capsys.readouterr()
+        assert key in captured.out + captured.err, argv
+        assert SECRET[:40].decode() not in captured.out + captured.err
+        if argv[0] != "verify":
+            assert len(captured.err.strip().splitlines()) == 1 or argv[0] == "repair", captured.err
+    assert os.listdir(out_dir) == []  # nothing exported or copied
+    assert _hash_tree(folder) == before  # nothing written anywhere: the store, its sibling, the link targets
+
+
+def test_a_link_is_never_copied_to_an_object_store(folder, capsys, s3_server, monkeypatch):  # noqa: F811
+    for k, v in s3_server.child_env().items():
+        if k.startswith("AWS_"):
+            monkeypatch.setenv(k, v)
+    a = folder / "a.zarr"
+    key = _link_chunk_to_secret(a, folder)
+    bucket = new_bucket(s3_server)
+    capsys.readouterr()
+    assert main(["copy", str(a), f"s3://{bucket}/copy.zarr"]) == 1
+    assert key in capsys.readouterr().err
+    import s3fs
+
+    fs = s3fs.S3FileSystem(**s3_server.storage_options, skip_instance_cache=True, use_listings_cache=False)
+    assert fs.find(bucket) == []
+
+
+def test_removing_the_link_and_repairing_mends_the_store(folder):
+    a = folder / "a.zarr"
+    _link_chunk_to_secret(a, folder)
+    os.remove(a / "action" / "c" / "2" / "0")  # what the refusal says to do
+    assert main(["repair", str(a)]) == 0
+    with ZarrStorage(str(a), read_only=True) as s:
+        assert len(s) == 2 * CHUNK  # truncated before the chunk that was a link, never its bytes
+        assert torch.equal(s[:][("observation")], _rows(ROWS, 0.0)["observation"][: 2 * CHUNK])
+
+
+# -- what is not a link inside the store ------------------------------------------------------
+
+
+def test_a_store_whose_root_is_a_link_opens_and_writes_through_it(folder):
+    link = folder / "alias.zarr"
+    os.symlink(folder / "a.zarr", link)
+    with ZarrStorage(str(link), MAX) as s:
+        assert len(s) == ROWS
+        s.set(slice(ROWS, ROWS + 4), _rows(4, 100.0))
+    with ZarrStorage(str(folder / "a.zarr"), read_only=True) as s:
+        assert len(s) == ROWS + 4 and s[ROWS]["observation"].tolist() == [100.0] * 3
+    assert verify(str(link)).ok
+
+
+def test_hard_links_share_no_write(folder):
+    """A hard-linked copy (what ``ZarrCheckpointer`` makes) keeps its bytes while the store is written."""
+    a, copy = folder / "a.zarr", folder / "snapshot.zarr"
+    shutil.copytree(a, copy, copy_function=os.link)
+    before = _hash_tree(copy)
+    with ZarrStorage(str(a), MAX) as s:
+        s.set(slice(0, ROWS), _rows(ROWS, 7.0))  # overwrites every chunk the snapshot shares
+    assert _hash_tree(copy) == before
+    with ZarrStorage(str(copy), read_only=True) as s:
+        assert torch.equal(s[:]["observation"], _rows(ROWS, 0.0)["observation"])
