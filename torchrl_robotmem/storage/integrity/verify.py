@@ -75,6 +75,8 @@ def verify(path: Any, *, storage_options: dict | None = None) -> IntegrityReport
     Every chunk is read and decoded (checksums verified where the store has
     them), every array's metadata compared with the recorded schema, the
     commit record's attributes checked, and a pending journal's chunks read.
+    A symbolic link below a local store's root is damage (kind ``"link"``, one
+    problem per link) and nothing is read then: a link may name any file.
     Nothing is written; a writer may be running (what it commits meanwhile may
     or may not be seen).
 
