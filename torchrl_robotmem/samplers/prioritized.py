@@ -5,11 +5,14 @@
 importance weights ``(P(i) / min P) ** -beta`` under the key ``"priority_weight"``, new rows at the
 largest priority seen) without TorchRL's C++ extension, which torchrl 0.14.1 builds against torch 2.14
 only. Over a :class:`~torchrl_robotmem.ZarrStorage` the raw priorities are kept in the store, in the
-reserved group ``_priority`` (an array ``priority`` and the group attributes), so a resumed run samples
-with the priorities it had. ``docs/samplers.md`` tells how and when they are written.
+reserved group ``_priority`` (chunks of priorities in an array's slots, and a record, the group's attributes,
+naming the slot and crc32c of each chunk), so a resumed run samples with the priorities it had. A write is
+all-or-nothing: new chunks into free slots, then the record in one ``zarr.json`` write. ``docs/samplers.md``
+tells how and when they are written, and what a damaged chunk or record gives.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import sys
@@ -18,20 +21,23 @@ import time
 import warnings
 import weakref
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
+import google_crc32c  # zarr's own crc32c (its Crc32cCodec)
 import numpy as np
 import torch
 from torchrl.data.replay_buffers.samplers import PrioritizedSampler
+from zarr.core.sync import sync as zarr_sync
 
-from torchrl_robotmem.storage import lifecycle
+from torchrl_robotmem.storage import _backend, lifecycle
+from torchrl_robotmem.storage.format import RESERVED
 from torchrl_robotmem.storage.zarr_storage import ZarrStorage, component_group, flush_before_close
 
 __all__ = ["PersistentPrioritizedSampler", "PriorityTable"]
 
 FORMAT = "torchrl_robotmem.PersistentPrioritizedSampler"
-FORMAT_VERSION = 1
-CHUNK_ROWS = 1 << 16  # rows of a chunk of the stored priority array (256 KiB of float32)
+FORMAT_VERSION = 2  # 2: chunks in slots named by the record, with their crc32c (1: one array, read still)
+CHUNK_ROWS = 1 << 16  # rows of a chunk of the stored priorities (256 KiB of float32)
 
 
 class PriorityTable:
@@ -103,40 +109,269 @@ def _last_positive(cum: torch.Tensor) -> torch.Tensor:
 
 
 # -- persistence in the store ---------------------------------------------------------------------
+#
+# The group ``_priority/`` holds one array (``priority``, or ``priority_b`` after a re-creation) of
+# CHUNK_ROWS-row chunk slots, and its own record: the group's attributes, written as ONE ``zarr.json``
+# (replaced atomically on a local store, one PUT on an object store). The record names, for each chunk of
+# priorities, the slot that holds it and the crc32c of its values. A write never touches a slot the
+# committed record (or the one before it) names: its chunks go to free slots, then the record is replaced.
+# A write killed at any step leaves the committed record and every slot it names as they were.
 
 
-def _read_state(storage: ZarrStorage, name: str, capacity: int) -> tuple[dict, np.ndarray] | None:
-    """The stored ``(attrs, raw priorities)`` of ``storage`` (``None``: nothing stored, or unreadable: warns)."""
-    group = component_group(storage, name)
-    if group is None:
-        return None
+class _Record(NamedTuple):
+    """A checked record: which slots hold the priorities, and the store's position when they were written."""
+
+    version: int
+    dtype: np.dtype
+    length: int  # the store's len at the write
+    cursor: int
+    write_count: int
+    max_priority: float | None
+    array: str
+    chunk_rows: int
+    slots: list[int] | None  # slot of each chunk (format 1: None, chunk c in slot c)
+    crc: list[int] | None  # crc32c of each chunk's values (format 1: none)
+    previous: list[int]  # the slots of the record before (kept one write longer, for a reader in flight)
+
+
+class _Stored(NamedTuple):
+    """What :func:`_read_state` gives the sampler: the record and the raw priorities of rows ``[0, len)``."""
+
+    record: _Record
+    values: np.ndarray
+    damaged: list[tuple[str, int, int, str]]  # (store key, first row, end row, what is wrong) of unusable chunks
+
+
+_ARRAYS = ("priority", "priority_b")  # a re-created array takes the name the committed record does not use
+_DTYPES = ("float32", "float64")
+
+
+def _crc(values: np.ndarray) -> int:
+    return int(google_crc32c.value(np.ascontiguousarray(values, dtype=values.dtype.newbyteorder("<")).tobytes()))
+
+
+def _is_int(v: Any) -> bool:
+    return type(v) is int
+
+
+def _check_record(attrs: dict, capacity: int) -> tuple[_Record | None, list[str]]:
+    """``(record, [])`` if every field of ``attrs`` is sound for a store of ``capacity`` rows, else ``(None, why)``.
+
+    Each problem names its field: a value of the wrong type, outside the range the store's extent allows,
+    or inconsistent with another field.
+    """
+    problems: list[str] = []
+
+    def field(key: str, ok, what: str) -> Any:
+        if key not in attrs:
+            problems.append(f"field {key!r} is missing")
+            return None
+        value = attrs[key]
+        if not ok(value):
+            problems.append(f"field {key!r} = {value!r} is not {what}")
+            return None
+        return value
+
+    if attrs.get("format") != FORMAT:
+        return None, [f"field 'format' = {attrs.get('format')!r} is not {FORMAT!r}"]
+    version = field("format_version", lambda v: v in (1, 2) and _is_int(v), "1 or 2 (this version reads 1 and 2)")
+    if version is None:
+        return None, problems
+    dtype = field("dtype", lambda v: v in _DTYPES, f"one of {_DTYPES}")
+    slots = crc = None
+    previous: list[int] = []
+    array, rows_per_chunk = "priority", CHUNK_ROWS
+    if version == 2:
+        array = field("array", lambda v: v in _ARRAYS, f"one of {_ARRAYS}")
+        rows_per_chunk = field("chunk_rows", lambda v: _is_int(v) and 1 <= v <= 1 << 30, "an integer in [1, 2**30]")
+        nchunks_max = -(-capacity // rows_per_chunk) if rows_per_chunk else 0
+        is_slots = lambda v: isinstance(v, list) and all(_is_int(s) and 0 <= s < 1 << 40 for s in v)  # noqa: E731
+        slots = field("chunks", lambda v: is_slots(v) and len(set(v)) == len(v) and len(v) <= nchunks_max,
+                      f"a list of distinct slot numbers, at most {nchunks_max} (the store's {capacity} rows "
+                      f"make {nchunks_max} chunks of {rows_per_chunk})")
+        crc = field("crc32c", lambda v: isinstance(v, list) and all(_is_int(s) and 0 <= s < 1 << 32 for s in v)
+                    and (slots is None or len(v) == len(slots)), "one crc32c (an integer < 2**32) a chunk")
+        previous = field("previous", is_slots, "a list of slot numbers") or []
+    extent = capacity if slots is None else min(capacity, len(slots) * (rows_per_chunk or 0))
+    length = field("len", lambda v: _is_int(v) and 0 <= v <= extent, f"an integer in [0, {extent}] (the rows the "
+                   f"store and the record's chunks hold)")
+    field("cursor", lambda v: _is_int(v) and 0 <= v <= max(extent - 1, 0), f"an integer in [0, {max(extent - 1, 0)}]")
+    field("write_count", lambda v: _is_int(v) and 0 <= v < 1 << 63, "an integer >= 0")
+    top = field("max_priority", lambda v: v is None or type(v) in (int, float) and math.isfinite(v) and v >= 0,
+                "null or a finite number >= 0")
+    if problems or length is None:
+        return None, problems
+    return _Record(version, np.dtype(dtype), length, attrs["cursor"], attrs["write_count"],
+                   None if top is None else float(top), array, rows_per_chunk, slots, crc, previous), []
+
+
+def _warn(msg: str) -> None:
+    warnings.warn(msg, stacklevel=5)
+
+
+def _read_state(storage: ZarrStorage, name: str, capacity: int) -> _Stored | None:
+    """The stored priorities of ``storage`` (``None``: nothing stored, or a record refused: warns naming the field).
+
+    Every field of the record is checked against ``capacity`` (the store's rows) before use; every chunk
+    holding rows below the recorded ``len`` is read and checked against its crc32c. A chunk that is
+    missing, damaged or unreadable is listed in ``damaged`` (its rows are zeros in ``values``).
+    """
     try:
+        group = component_group(storage, name)
+        if group is None:
+            return None
         attrs = group.attrs.asdict()
-        if attrs.get("format") != FORMAT or int(attrs.get("format_version", 0)) > FORMAT_VERSION:
-            raise ValueError(f"format {attrs.get('format')!r} version {attrs.get('format_version')!r}")
-        raw = np.asarray(group["priority"][:], dtype=np.dtype(attrs["dtype"]))
-        if raw.ndim != 1 or not np.all(np.isfinite(raw)) or np.any(raw < 0):
-            raise ValueError("the priority array is not 1-D, finite and non-negative")
     except Exception as err:  # noqa: BLE001 - derived state: the rows are intact, the priorities start over
-        warnings.warn(f"{storage.path!r}: the stored priorities ({name}/) cannot be read ({type(err).__name__}: "
-                      f"{str(err)[:200]}); every row starts at the max priority.", stacklevel=4)
+        _warn(f"{storage.path!r}: the record of the stored priorities ({name}/zarr.json) cannot be read "
+              f"({type(err).__name__}: {str(err)[:200]}); every row restarts at priority 1.0, as in a new buffer "
+              f"(the rows are intact). The next priority write replaces it.")
         return None
-    return attrs, raw[:capacity]
+    record, problems = _check_record(attrs, capacity)
+    if record is None:
+        _warn(f"{storage.path!r}: the record of the stored priorities ({name}/zarr.json) is refused: "
+              f"{'; '.join(problems)}. Every row restarts at priority 1.0, as in a new buffer (the priorities are "
+              f"derived state: the rows are intact). The next priority write replaces the record.")
+        return None
+    rows = record.chunk_rows
+    values = np.zeros(record.length, dtype=record.dtype)
+    damaged: list[tuple[str, int, int, str]] = []
+    nread = -(-record.length // rows)
+    path = f"{name}/{record.array}"
+    try:
+        array = group[record.array]
+        if not hasattr(array, "shape") or array.ndim != 1 or array.chunks != (rows,) or array.dtype != record.dtype:
+            raise ValueError(f"its metadata ({getattr(array, 'shape', None)}, chunks "
+                             f"{getattr(array, 'chunks', None)}, {getattr(array, 'dtype', None)}) is not the "
+                             f"record's (chunks of {rows}, {record.dtype})")
+    except Exception as err:  # noqa: BLE001 - every chunk of the array is lost
+        if nread:
+            damaged.append((f"{path}/zarr.json", 0, record.length, f"unreadable ({type(err).__name__}: "
+                                                                    f"{str(err)[:160]})"))
+        return _Stored(record, values, damaged)
+    store = array.store
+    for c in range(nread):
+        slot = c if record.slots is None else record.slots[c]
+        lo, hi = c * rows, min((c + 1) * rows, record.length)
+        key = f"{array.path}/{array.metadata.encode_chunk_key((slot,))}"
+        try:
+            if record.slots is not None and (slot + 1) * rows > array.shape[0]:
+                raise ValueError(f"slot {slot} is beyond the array's {array.shape[0]} rows")
+            chunk = np.asarray(array[slot * rows: (slot + 1) * rows])
+            if chunk.size < hi - lo:
+                raise ValueError(f"the array's {array.shape[0]} rows end before the record's len {record.length}")
+        except Exception as err:  # noqa: BLE001 - a chunk that fails to decode (a crc32c codec mismatch, a torn file)
+            damaged.append((key, lo, hi, f"unreadable ({type(err).__name__}: {str(err)[:160]})"))
+            continue
+        if record.crc is not None:
+            bad = "" if _crc(chunk) == record.crc[c] else "checksum"
+        else:  # format 1: no checksum, but every chunk was written (a missing one reads as Zarr's fill value)
+            bad = "" if zarr_sync(store.exists(key)) else "missing"
+        if not bad and (not np.all(np.isfinite(chunk[: hi - lo])) or np.any(chunk[: hi - lo] < 0)):
+            bad = "values"
+        if bad:
+            if bad == "checksum":
+                bad = "missing" if not zarr_sync(store.exists(key)) else "damaged (its crc32c does not match)"
+            elif bad == "values":
+                bad = "damaged (negative or non-finite values)"
+            damaged.append((key, lo, hi, bad))
+            continue
+        values[lo:hi] = chunk[: hi - lo]
+    return _Stored(record, values, damaged)
+
+
+# Each step of a write is one of the functions below: a write killed between any two leaves the committed
+# record and the slots it names untouched (tests/reliability/test_priority_faults.py kills at each).
+
+
+def _create_array(group, name: str, size: int, rows: int, dtype: np.dtype):
+    """A new, empty array of ``size`` rows (no record names it: ``overwrite`` drops only unreferenced slots)."""
+    return group.create_array(name, shape=(size,), chunks=(rows,), dtype=dtype, fill_value=0, overwrite=True,
+                              compressors=_backend.make_compressors("zstd", 3, dtype.itemsize),
+                              config={"write_empty_chunks": True})
+
+
+def _resize_array(array, size: int) -> None:
+    """More slots at the end (the array's ``zarr.json``, replaced in one write; no slot is moved or dropped)."""
+    array.resize((size,))
+
+
+def _write_chunk(array, slot: int, values: np.ndarray) -> None:
+    """Writes one chunk of priorities into a free slot (one chunk file: no record names it yet)."""
+    rows = values.size
+    array[slot * rows: (slot + 1) * rows] = values
+
+
+def _write_record(group, record: dict) -> None:
+    """The commit: the group's attributes, replaced in ONE ``zarr.json`` write."""
+    group.attrs.put(record)
+
+
+def _delete_array(group, name: str) -> None:
+    """Drops an array no record names any more (after a re-creation, or one left by a killed write)."""
+    del group[name]
+
+
+def _group_for_write(storage: ZarrStorage, name: str):
+    try:
+        return component_group(storage, name, write=True)
+    except (ValueError, TypeError, KeyError):  # its zarr.json does not parse: no record to keep (the read warned)
+        return storage._handle.group.create_group(name, overwrite=True)
 
 
 def _write_state(storage: ZarrStorage, name: str, raw: torch.Tensor, chunks: set[int], attrs: dict) -> None:
-    """Writes the ``chunks`` of ``raw`` that changed, then the attributes (a reader trusts the attributes last)."""
-    group = component_group(storage, name, write=True)
-    dtype = str(raw.numpy().dtype)
-    array = group.get("priority")
-    if array is None or array.shape != (raw.numel(),) or str(array.dtype) != dtype:
-        array = group.create_array("priority", shape=(raw.numel(),), chunks=(CHUNK_ROWS,), dtype=dtype,
-                                   overwrite=True, config={"write_empty_chunks": True})
-        chunks = set(range(-(-raw.numel() // CHUNK_ROWS)))
+    """Writes the ``chunks`` of ``raw`` that changed into free slots, then the record that names them.
+
+    A chunk the committed record names but ``chunks`` leaves out keeps its slot. The committed array is kept
+    when the record is sound and of the same dtype and chunking; otherwise every chunk is written into a new
+    array under the other name, which the new record names (the old array is dropped after the record).
+    """
+    group = _group_for_write(storage, name)
+    rows = CHUNK_ROWS
     values = raw.numpy()
-    for c in sorted(chunks):
-        array[c * CHUNK_ROWS: (c + 1) * CHUNK_ROWS] = values[c * CHUNK_ROWS: (c + 1) * CHUNK_ROWS]
-    group.attrs.update({**attrs, "format": FORMAT, "format_version": FORMAT_VERSION, "dtype": dtype})
+    dtype = values.dtype
+    nchunks = max(1, -(-values.size // rows))
+    padded = np.zeros(nchunks * rows, dtype=dtype)
+    padded[: values.size] = values
+    current = group.attrs.asdict()
+    record, _ = _check_record(current, values.size)
+    array = None
+    if record is not None and record.version == 2 and record.dtype == dtype and record.chunk_rows == rows:
+        try:
+            array = group[record.array]
+            if array.ndim != 1 or array.chunks != (rows,) or array.dtype != dtype or array.shape[0] % rows:
+                array = None
+        except KeyError:
+            array = None
+    if array is not None:
+        name_used, slots, crc = record.array, list(record.slots), list(record.crc)
+        protected = set(record.slots) | set(record.previous)
+        write = {c for c in chunks if c < nchunks} | set(range(len(slots), nchunks))
+        previous = list(record.slots) if write else list(record.previous)  # one record back stays readable
+    else:  # a first write, a format-1 group, a refused record, a new dtype: every chunk into a new array
+        used = current.get("array") if current.get("array") in _ARRAYS else (
+            "priority" if current.get("format_version") == 1 else None)
+        name_used = "priority_b" if used == "priority" else "priority"
+        array = _create_array(group, name_used, nchunks * rows, rows, dtype)
+        slots, crc, protected, previous = [], [], set(), []
+        write = set(range(nchunks))
+    slots += [-1] * (nchunks - len(slots))
+    crc += [0] * (nchunks - len(crc))
+    free = (s for s in itertools.count() if s not in protected)
+    for c in sorted(write):
+        slots[c] = next(free)
+    size = (max(slots) + 1) * rows
+    if array.shape[0] < size:
+        _resize_array(array, size)
+    for c in sorted(write):
+        chunk = padded[c * rows: (c + 1) * rows]
+        _write_chunk(array, slots[c], chunk)
+        crc[c] = _crc(chunk)
+    _write_record(group, {**attrs, "format": FORMAT, "format_version": FORMAT_VERSION, "dtype": str(dtype),
+                          "array": name_used, "chunk_rows": rows, "chunks": slots[:nchunks], "crc32c": crc[:nchunks],
+                          "previous": previous})
+    other = _ARRAYS[1 - _ARRAYS.index(name_used)]
+    if other in group:
+        _delete_array(group, other)
 
 
 _LIVE: weakref.WeakSet = weakref.WeakSet()
@@ -241,6 +476,8 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
             raise ValueError(f"alpha and beta must be >= 0, got alpha={alpha}, beta={beta}.")
         if not (isinstance(eps, (int, float)) and math.isfinite(eps) and eps >= 0):
             raise ValueError(f"eps must be a finite number >= 0, got {eps!r}.")
+        if not isinstance(name, str) or not name.startswith("_") or "/" in name or name in RESERVED:
+            raise ValueError(f"name must be one top-level name starting with '_' (not one of {RESERVED}), got {name!r}.")
         dtype = getattr(torch, dtype) if isinstance(dtype, str) else dtype
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}.")
@@ -349,22 +586,41 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
         n, cap = min(len(storage), self._max_capacity), self._max_capacity
         stored = _read_state(storage, self.name, cap)
         raw = torch.zeros(cap, dtype=self.dtype)
-        fresh = torch.ones(n, dtype=torch.bool)  # rows with no stored priority: the max priority
+        fresh = torch.ones(n, dtype=torch.bool)  # rows with no usable stored priority: the max priority
         if stored is not None:
-            attrs, values = stored
-            raw[: values.size] = torch.from_numpy(values.copy()).to(self.dtype)
-            self._top = attrs.get("max_priority")
-            since = storage.write_count - int(attrs.get("write_count", 0))
+            record = stored.record
+            m = min(stored.values.size, n)
+            raw[:m] = torch.from_numpy(stored.values[:m].copy()).to(self.dtype)
+            self._top = record.max_priority
+            since = storage.write_count - record.write_count
             if since >= 0:  # (negative: the store was emptied since, and every row is new)
-                fresh[: min(int(attrs.get("len", 0)), n, values.size)] = False
-                rows = (int(attrs.get("cursor", 0)) + torch.arange(min(since, cap))) % cap
+                fresh[:m] = False
+                rows = (record.cursor + torch.arange(min(since, cap))) % cap
                 fresh[rows[rows < n]] = True  # rows committed after the last priority write
+            for _, lo, hi, _ in stored.damaged:
+                fresh[lo:min(hi, n)] = True
             self._skip_fill = True
         raw[n:] = 0
-        raw[:n][fresh] = self.default_priority
+        restart = self._restart_priority(raw[:n], fresh)
+        raw[:n][fresh] = restart
+        if stored is not None:
+            for key, lo, hi, why in stored.damaged:
+                _warn(f"{storage.path!r}: the priority chunk {key} (rows {lo}-{hi - 1}) is {why}: those rows restart "
+                      f"at the max priority, {restart:g} (the largest recorded, as new rows get; 1.0 if none is), the "
+                      f"other rows keep theirs. The next priority write replaces the chunk.")
         self._raw = raw
         self._table.set_all(self._weights(raw[:n]))
-        self._dirty = set(range(-(-cap // CHUNK_ROWS))) if stored is None or bool(fresh.any()) else set()
+        if stored is None:
+            self._dirty = set(range(-(-cap // CHUNK_ROWS)))
+        else:  # the chunks whose rows differ from the stored ones (the others keep their slots)
+            self._dirty = set(torch.unique(torch.div(torch.nonzero(fresh).reshape(-1), CHUNK_ROWS,
+                                                     rounding_mode="floor")).tolist())
+
+    def _restart_priority(self, raw: torch.Tensor, fresh: torch.Tensor) -> float:
+        """The priority of rows with none stored: the max priority (of the kept rows with ``max_priority_within_buffer``)."""
+        if self._max_priority_within_buffer and bool((~fresh).any()):
+            return float(raw[~fresh].max())
+        return 1.0 if self._top is None else float(self._top)
 
     # -- TorchRL's sampler API ----------------------------------------------------------------
 
