@@ -150,6 +150,7 @@ def test_return_from_the_function_that_owned_the_buffer(tmp_path):
     """)
     assert res.returncode == 0, res.stderr
     assert completed == 4
+    assert "torchrl_robotmem:" not in res.stderr, res.stderr  # no child reported a flush it could not make
     _check_rows(path, completed)
 
 
@@ -329,8 +330,11 @@ def test_a_forked_child_exits_reads_and_is_refused_writes_and_the_parent_loses_n
     """
     res, completed, path = _run_child(tmp_path, """
         import multiprocessing as mp
-        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000, **ONLY_FLUSH_COMMITS), batch_size=4)
+        from torchrl_robotmem.samplers import PersistentPrioritizedSampler
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(PATH, 10_000, **ONLY_FLUSH_COMMITS), batch_size=4,
+                                    sampler=PersistentPrioritizedSampler())
         extend_batches(rb, 3)  # uncommitted: only a flush commits
+        rb.update_priority(torch.arange(10), torch.full((10,), 5.0))  # unwritten priorities too
 
         def child(mode):
             if mode == "read":
@@ -363,4 +367,5 @@ def test_a_forked_child_exits_reads_and_is_refused_writes_and_the_parent_loses_n
     refusals = [ln for ln in lines if ln.startswith("refused")]
     assert len(refusals) == 2 and all("is a forked child of it" in r and "read_only=True" in r for r in refusals)
     assert completed == 4
+    assert "torchrl_robotmem:" not in res.stderr, res.stderr  # no child reported a flush it could not make
     _check_rows(path, completed)

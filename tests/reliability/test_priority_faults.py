@@ -354,3 +354,20 @@ def test_a_missing_chunk_of_a_format1_group_is_found(tmp_path):
 
 if __name__ == CHILD_RUN_NAME:
     _child(**ARGS)  # noqa: F821 - given by runpy.run_path(init_globals=...)
+
+
+@pytest.mark.parametrize("fmt", ["format2", "format1"])
+def test_repair_rebuilds_a_lost_root_record_beside_a_priority_group(tmp_path, fmt):
+    """The priority group is a component's state, not a column: a rebuilt record does not take it for one."""
+    path = tmp_path / "m.zarr"
+    _build(path, 4 * R, _old())
+    if fmt == "format1":
+        shutil.rmtree(path / "_priority")
+        _write_format1(path, _old().numpy(), 1.5)
+    os.remove(path / "zarr.json")
+    from torchrl_robotmem.storage.integrity import repair
+
+    report = repair(str(path))
+    assert report.ok, report
+    with ZarrStorage(path, read_only=True) as storage:
+        assert len(storage) == ROWS and set(storage.schema) == {"obs", "episode", "run", "env"}

@@ -15,6 +15,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -315,7 +316,7 @@ def _group_for_write(storage: ZarrStorage, name: str):
     try:
         return component_group(storage, name, write=True)
     except (ValueError, TypeError, KeyError):  # its zarr.json does not parse: no record to keep (the read warned)
-        return storage._handle.group.create_group(name, overwrite=True)
+        return component_group(storage, name, write=True, fresh=True)
 
 
 def _write_state(storage: ZarrStorage, name: str, raw: torch.Tensor, chunks: set[int], attrs: dict) -> None:
@@ -375,6 +376,7 @@ def _write_state(storage: ZarrStorage, name: str, raw: torch.Tensor, chunks: set
 
 
 _LIVE: weakref.WeakSet = weakref.WeakSet()
+os.register_at_fork(after_in_child=_LIVE.clear)  # a forked child writes no priority of its parent's samplers at exit
 _HOOKED = False
 _EXITING = False
 

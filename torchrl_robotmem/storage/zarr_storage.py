@@ -58,6 +58,10 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             ``LazyTensorStorage``'s, for a one-line swap; ``scratch_dir`` is ignored with a warning (:mod:`.compat`).
         sample_tags (bool, optional): include the tags in what ``get`` returns. Defaults to ``False``.
         on_damage (str, optional): ``"raise"`` (default) or ``"warn"`` (``read_only`` only) on a damaged store.
+        goal_conditioned (bool, optional): whether the rows come from a goal env, which has a success flag.
+            ``False`` (MaMuJoCo, any env without ``is_success``): a write without ``("next", "is_success")``
+            gets no advice to record one (a write without an env name still does). A writer records the
+            value in the store; ``None`` (default): as the store records it, goal-conditioned if never told.
 
     Examples:
         >>> import tempfile, torch
@@ -83,14 +87,15 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                  compression_level: int = 1, commit_interval: float = 1.0, background: bool = True,
                  commit_process: bool | None = None, storage_options: dict | None = None, device: str = "cpu",
                  compilable: bool = False, shared_init: bool = False, sample_tags: bool = False,
-                 on_damage: str = "raise", scratch_dir: str | os.PathLike | None = None, existsok: bool = False,
+                 on_damage: str = "raise", goal_conditioned: bool | None = None,
+                 scratch_dir: str | os.PathLike | None = None, existsok: bool = False,
                  auto_cleanup: bool | None = None, consolidated: bool = False, cleanup_memmap: bool = True) -> None:
         compat.check_replaced_arguments(path, scratch_dir, existsok, auto_cleanup, consolidated, cleanup_memmap)
         loader.check_arguments(path, max_size, chunk_rows=chunk_rows, commit_interval=commit_interval, ndim=ndim,
                                shared_init=shared_init, compressor=compressor, compression_level=compression_level,
-                               on_damage=on_damage, read_only=read_only)
+                               on_damage=on_damage, read_only=read_only, goal_conditioned=goal_conditioned)
         self._store = MemoryStore(path, read_only=read_only, storage_options=storage_options, on_damage=on_damage,
-                                  commit_process=commit_process)
+                                  commit_process=commit_process, goal_conditioned=goal_conditioned)
         self._handle = self._store.handle  # the parts, as the tests and benchmarks read them
         self.path = self._handle.path
         self.read_only = self._handle.read_only
@@ -123,6 +128,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._load_rows(attrs)
         if not self.read_only:
             self.env = attrs.get("env") if env is None else env  # by default, the previous run's env
+            store.record_goal_conditioned(attrs)  # by default, what the store records
             store.open_arrays()
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._mirror.schema is not None:
@@ -177,6 +183,11 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
     def env_code(self, name: str, *, create: bool = False) -> int:
         """The integer code of an environment name (``create``: register a new one, writers only)."""
         return self._store.env_code(name, create=create)
+
+    @property
+    def goal_conditioned(self) -> bool:
+        """Whether the rows are goal-conditioned (a write without a success flag is then warned about)."""
+        return self._store.goal_conditioned
 
     @property
     def local_dir(self) -> str | None:
@@ -443,7 +454,7 @@ def _open_read_only(path: str, storage_options: dict | None, device: str) -> Zar
     return storage
 
 
-def component_group(storage: ZarrStorage, name: str, *, write: bool = False) -> Any | None:
+def component_group(storage: ZarrStorage, name: str, *, write: bool = False, fresh: bool = False) -> Any | None:
     """The Zarr group ``name`` of ``storage``'s store in which a component (a sampler) keeps its own state.
 
     ``name`` is a reserved top-level name (it starts with ``_``, and is not the store's own ``_journal`` or
@@ -458,6 +469,8 @@ def component_group(storage: ZarrStorage, name: str, *, write: bool = False) -> 
 
     Keyword Args:
         write (bool, optional): the caller will write into the group. Defaults to ``False``.
+        fresh (bool, optional): with ``write``, the group is created anew, empty (a component whose own
+            record cannot be read starts over). Defaults to ``False``.
 
     Example:
         >>> import tempfile, torch
@@ -473,6 +486,8 @@ def component_group(storage: ZarrStorage, name: str, *, write: bool = False) -> 
                          f"{RESERVED}, the store's own folders), got {name!r}.")
     if write:
         storage._store.check_writable()
+        if fresh:
+            return storage._handle.group.create_group(name, overwrite=True)
         return storage._handle.group.require_group(name)
     try:
         node = storage._handle.group[name]

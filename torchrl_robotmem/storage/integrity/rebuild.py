@@ -112,6 +112,9 @@ def rebuild_attrs(store, local_dir) -> dict:
     """A commit record rebuilt from the arrays' metadata (the length is set by the caller)."""
     arrays = {}
     for p in array_metas(store, local_dir):
+        top = p.split("/", 1)[0]
+        if top.startswith("_") and top not in (DataKind.TENSOR_KEY, DataKind.PYTREE_KEY):
+            continue  # a component's group (a sampler's "_priority"): its own state, not a column
         try:
             node = zarr.open_array(store, path=p, mode="r", zarr_format=3)
         except Exception:  # noqa: BLE001 - groups ("next") and unreadable arrays
