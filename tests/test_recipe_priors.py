@@ -133,18 +133,19 @@ def test_a_prior_without_a_success_column_is_summarised_as_such(tmp_path):
     assert describe_prior(s).endswith("50 rows, 1 episodes, success rate n/a (no next/is_success column)")
 
 
-def test_pretrain_stops_at_a_small_check_only_once_the_full_evaluation_confirms():
-    """recipes/her/pretrain.py: a small check at the target runs the full evaluation, which decides."""
+def test_pretrain_stops_at_the_target_or_a_plateau_of_its_checks():
+    """recipes/her/pretrain.py: the checks decide (they run on held-out goals); nothing else is looked at."""
     from recipes.her.pretrain import pretrain
 
     steps = []
-    small = {"eval/success_rate": 1.0}  # the small check always says the target is met ...
-    full = iter([0.5, 0.9, 1.0])  # ... the full evaluation only at the third look
-
-    out = pretrain(lambda: steps.append(1), lambda: small, max_updates=3000, eval_every=100, target=0.95,
-                   patience=5, confirm=lambda: {"eval/success_rate": next(full)})
+    checks = iter([0.5, 0.9, 1.0])
+    out = pretrain(lambda: steps.append(1), lambda: {"eval/success_rate": next(checks)}, max_updates=3000,
+                   eval_every=100, target=0.95, patience=5)
     assert out["stopped"] == "target" and out["updates"] == len(steps) == 300
-    assert out["checks"] == [[100, 0.5], [200, 0.9], [300, 1.0]] and out["metrics"] == {"eval/success_rate": 1.0}
+    assert out["checks"] == [[100, 0.5], [200, 0.9], [300, 1.0]] and "metrics" not in out
+    flat = iter([0.5, 0.6, 0.6, 0.55])
+    out = pretrain(lambda: None, lambda: {"eval/success_rate": next(flat)}, 3000, 100, target=0.95, patience=2)
+    assert out["stopped"] == "patience" and out["updates"] == 400
     # a critic-only pretraining (the actor does not move): one look before, and none in between
     looks = []
     fixed = pretrain(lambda: None, lambda: looks.append(1) or {"eval/success_rate": 0.3}, 3000, 100,
@@ -152,6 +153,29 @@ def test_pretrain_stops_at_a_small_check_only_once_the_full_evaluation_confirms(
     assert fixed["updates"] == 3000 and [u for u, _ in fixed["checks"]] == [0, 3000] and len(looks) == 2
     met = pretrain(lambda: None, lambda: {"eval/success_rate": 1.0}, 3000, 100, target=0.95, actor_fixed=True)
     assert met["updates"] == 0 and met["stopped"] == "target"
+
+
+def test_pretraining_checks_look_at_held_out_goals_never_at_the_evaluation_goals():
+    """The goals a check sees and the goals the run is evaluated on share none (issue 42: selection on held-out goals)."""
+    from omegaconf import OmegaConf
+
+    from recipes.her.utils import eval_seed, make_eval_env
+
+    cfg = OmegaConf.create({"seed": 3, "env": {"name": "FetchReach-v4", "max_episode_steps": 50}})
+    goals = {}
+    for held_out in (False, True):
+        env = make_eval_env(cfg, 20, held_out=held_out)
+        env.set_seed(eval_seed(cfg, held_out))
+        goals[held_out] = env.reset()["desired_goal"]
+        env.close()
+    assert goals[False].shape == goals[True].shape == (20, 3)
+    distances = torch.cdist(goals[False], goals[True])
+    assert distances.min() > 1e-6  # not one evaluation goal among the held-out ones
+    # and the evaluation goals are what they were: the same seeds as before the held-out split
+    env = make_eval_env(cfg, 20)
+    env.set_seed(cfg.seed + 10_000)
+    assert torch.equal(env.reset()["desired_goal"], goals[False])
+    env.close()
 
 
 def test_pretraining_stops_once_the_memory_meets_the_target_and_the_run_reports_its_cpu(tmp_path):
@@ -164,7 +188,7 @@ def test_pretraining_stops_once_the_memory_meets_the_target_and_the_run_reports_
                   out="run2")
     s = summary_of(tmp_path, proc, out="run2")
     assert s["pretrain_stopped"] == "target" and s["pretrain_updates"] == 5 < 3000 and s["updates"] == 5
-    assert s["pretrain_checks"] == [[5, s["curve"][0][1]]]
+    assert [u for u, _ in s["pretrain_checks"]] == [5]  # one check, on held-out goals; then the evaluation
     assert s["frames"] == 0 and s["frames_to_target"] == 0 and s["memory_rows_after"] == 50
     assert "pretraining on the memory: 5 of at most 3000 updates, stopped at the target 0.0" in proc.stdout
     # CPU-seconds: the whole process, and its training and evaluation parts, printed and recorded

@@ -3,12 +3,12 @@
 A run that starts fresh networks on a memory that already holds transitions
 first learns from it (``memory.pretrain_updates`` at most). Every
 ``memory.pretrain_eval_every`` updates the actor is checked: the recipe's
-deterministic evaluation on ``memory.pretrain_eval_episodes`` fixed goals (fewer
-than ``logger.eval_episodes``: a check costs less). Pretraining stops once a
-check reaches ``memory.pretrain_target`` (``logger.target_success`` when null)
-and the full evaluation confirms it, or when ``memory.pretrain_patience``
-checks in a row did not beat the best one. The full evaluation where it stops
-is the run's evaluation at frame 0.
+deterministic evaluation on ``memory.pretrain_eval_episodes`` held-out goals (a
+seed range disjoint from the evaluation goals: when to stop is a choice, and no
+choice is made on the goals a run is evaluated on). Pretraining stops once a
+check reaches ``memory.pretrain_target`` (``logger.target_success`` when null),
+or when ``memory.pretrain_patience`` checks in a row did not beat the best one.
+The run's evaluation at frame 0 is a full evaluation made after it stopped.
 
 ``train.py`` imports it as ``pretrain``; like ``utils.py`` it imports no sibling.
 """
@@ -30,14 +30,14 @@ def pretrain(
     target: float | None = None,
     patience: int = 3,
     actor_fixed: bool = False,
-    confirm: Callable[[], dict] | None = None,
     on_check: Callable[[int, dict], None] | None = None,
 ) -> dict:
     """Runs up to ``max_updates`` calls of ``update``, checking the actor every ``eval_every``; stops when done.
 
     Args:
         update: one gradient step (takes no argument).
-        check: an evaluation of the actor as it is now; returns metrics with ``"eval/success_rate"``.
+        check: an evaluation of the actor as it is now, on held-out goals; returns metrics with
+            ``"eval/success_rate"``.
         max_updates (int): the most updates (``memory.pretrain_updates``).
         eval_every (int): updates between two checks; ``0``: check only after all of them.
         target (float, optional): stop at this evaluated success or above.
@@ -46,14 +46,10 @@ def pretrain(
         actor_fixed (bool): the updates do not move the actor (critic-only pretraining of a
             cloned actor): it is checked before them, where the target may already be met,
             and after all of them.
-        confirm (callable, optional): the full evaluation, when ``check`` is a smaller one: a check
-            at the target stops pretraining only if ``confirm`` reaches it too (its result then
-            stands for that check). ``None``: ``check`` is the full evaluation.
         on_check: called with ``(updates done, metrics)`` after every check (logging).
 
     Returns:
-        ``{"updates": done, "checks": [[updates, success], ...], "stopped": "target" | "patience" | "max",
-        "metrics": the full evaluation at ``updates`` or ``None`` where the last was a smaller check}``.
+        ``{"updates": done, "checks": [[updates, success], ...], "stopped": "target" | "patience" | "max"}``.
 
     Example:
         >>> steps = []
@@ -62,18 +58,14 @@ def pretrain(
         >>> out["updates"], out["stopped"], out["checks"]
         (500, 'target', [[250, 0.5], [500, 1.0]])
         >>> flat = pretrain(lambda: None, lambda: {"eval/success_rate": 0.2}, 3000, 250, target=0.95, patience=2)
-        >>> flat["updates"], flat["stopped"], flat["metrics"]
-        (750, 'patience', {'eval/success_rate': 0.2})
+        >>> flat["updates"], flat["stopped"], flat["checks"]
+        (750, 'patience', [[250, 0.2], [500, 0.2], [750, 0.2]])
     """
     checks: list[list] = []
-    state = {"best": -math.inf, "since_best": 0, "full": None}
+    state = {"best": -math.inf, "since_best": 0}
 
     def look(done: int) -> str | None:
-        metrics, state["full"] = check(), None
-        if confirm is None:
-            state["full"] = metrics
-        elif target is not None and metrics["eval/success_rate"] >= target:
-            metrics = state["full"] = confirm()  # a small check at the target: the full evaluation decides
+        metrics = check()
         success = metrics["eval/success_rate"]
         checks.append([done, success])
         if on_check is not None:
@@ -87,7 +79,7 @@ def pretrain(
         return "patience" if patience and state["since_best"] >= patience else None
 
     def result(done: int, stopped: str) -> dict:
-        return {"updates": done, "checks": checks, "stopped": stopped, "metrics": state["full"]}
+        return {"updates": done, "checks": checks, "stopped": stopped}
 
     if actor_fixed:  # the actor will not move: one look before, one after
         if look(0) == "target":

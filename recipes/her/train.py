@@ -109,10 +109,10 @@ def main(cfg: DictConfig) -> None:
     prior_dtypes, prior_summaries = check_prior_memories(cfg, priors)
 
     # Create the memory: storage, optional goal sampler, HER on top
-    # beside prior memories the run's buffer is sampled in part-batches (PriorMix): no default size
-    own_batch = None if cfg.prior.paths else cfg.optim.batch_size
+    # every draw names its size (a batch, a part-batch beside prior memories, or all the batches of an update round
+    # at once): no default size, which TorchRL would warn about on each draw of another size
     replay_buffer = make_replay_buffer(cfg, make_storage(cfg, memory_path, device=memory_device(cfg)), make_sampler(cfg),
-                                       batch_size=own_batch)
+                                       batch_size=None)
     goal_sampler = replay_buffer.sampler if cfg.replay_buffer.sampler.enabled else None
     remembered = len(replay_buffer)
 
@@ -188,9 +188,9 @@ def main(cfg: DictConfig) -> None:
 
     outcomes: list[int] = []  # each episode's success in the last evaluation on eval_env (eval_episodes.jsonl)
 
-    def full_eval(env=eval_env) -> dict:
+    def full_eval(env=eval_env, held_out: bool = False) -> dict:
         with cpu.evaluating():
-            return evaluate(cfg, env, model[0], outcomes if env is eval_env else None)
+            return evaluate(cfg, env, model[0], outcomes if env is eval_env else None, held_out=held_out)
 
     def log_eval(frames: int, metrics: dict | None = None) -> float:
         metrics = dict(full_eval() if metrics is None else metrics)
@@ -328,33 +328,31 @@ def main(cfg: DictConfig) -> None:
 def pretrain_on_memory(cfg: DictConfig, step, full_eval, actor_fixed: bool, cpu: CpuClock, logger, memory) -> dict:
     """``memory.pretrain_*``: updates on the memory until a check reaches the target, a plateau or the maximum.
 
-    The checks run ``memory.pretrain_eval_episodes`` episodes on their own eval env (a check at the
-    target is confirmed by ``full_eval``); the full evaluation where pretraining stopped is returned
-    in ``"metrics"`` (the run's evaluation at frame 0).
+    The checks run ``memory.pretrain_eval_episodes`` episodes on held-out goals (a seed range disjoint
+    from the evaluation's: ``utils.eval_seed``), so when pretraining stops is never chosen on the goals the
+    run is evaluated on. The full evaluation after it stops is returned in ``"metrics"`` (the run's
+    evaluation at frame 0): reported, never looked at to stop.
     """
     mem = cfg.memory
-    episodes = min(mem.pretrain_eval_episodes or cfg.logger.eval_episodes, cfg.logger.eval_episodes)
+    episodes = mem.pretrain_eval_episodes or cfg.logger.eval_episodes
     target = mem.pretrain_target if mem.pretrain_target is not None else cfg.logger.target_success
-    small = episodes < cfg.logger.eval_episodes and mem.pretrain_eval_every > 0  # 0: one look, the full one
     with cpu.evaluating():
-        check_env = make_eval_env(cfg, episodes, memory) if small else None
+        check_env = make_eval_env(cfg, episodes, memory, held_out=True)
 
     def on_check(updates: int, metrics: dict) -> None:
         if logger is not None:
             logger.log_metrics({"pretrain/success_rate": metrics["eval/success_rate"]}, updates)
 
-    out = pretrain(step, (lambda: full_eval(check_env)) if small else full_eval, mem.pretrain_updates,
-                   mem.pretrain_eval_every, target=target, patience=mem.pretrain_patience, actor_fixed=actor_fixed,
-                   confirm=full_eval if small else None, on_check=on_check)
-    if check_env is not None:
-        check_env.close()
-    if out["metrics"] is None:  # the last look was a small check: the full evaluation at frame 0
-        out["metrics"] = full_eval()
+    out = pretrain(step, lambda: full_eval(check_env, held_out=True), mem.pretrain_updates, mem.pretrain_eval_every,
+                   target=target, patience=mem.pretrain_patience, actor_fixed=actor_fixed, on_check=on_check)
+    check_env.close()
+    out["metrics"] = full_eval()
     why = {"target": f"the target {target}", "patience": f"a plateau ({mem.pretrain_patience} checks without a "
            "better success)", "max": "the maximum"}[out["stopped"]]
     print(f"pretraining on the memory: {out['updates']} of at most {mem.pretrain_updates} updates, stopped at {why}; "
-          f"success at each check ({episodes} episodes, every {mem.pretrain_eval_every or mem.pretrain_updates} "
-          f"updates): {', '.join(f'{u}: {x:.2f}' for u, x in out['checks'])}")
+          f"success at each check ({episodes} held-out episodes, every {mem.pretrain_eval_every or mem.pretrain_updates} "
+          f"updates): {', '.join(f'{u}: {x:.2f}' for u, x in out['checks'])}; evaluation after it: "
+          f"{out['metrics']['eval/success_rate']:.2f}")
     return out
 
 if __name__ == "__main__":

@@ -53,6 +53,10 @@ logging.getLogger("matplotlib").setLevel(logging.WARNING)
 # The keys the recall transform adds; recomputed after every sample (HER
 # replaces the goal they were recalled for), so never stored.
 RECALL_KEYS = ("prior_goals", "prior_goals_dist", "prior_goals_mask")
+# Goals by seed: evaluation episode i resets with cfg.seed + EVAL_SEED + i. Anything a run chooses by looking at
+# its success (when pretraining stops) looks at held-out goals, cfg.seed + HELD_OUT_SEED + i, never at those.
+EVAL_SEED = 10_000
+HELD_OUT_SEED = 5_000_000
 
 
 # ====================================================================
@@ -252,13 +256,19 @@ def make_task_env(cfg: DictConfig, num_envs: int, seed: int, memory=None, parall
                     transforms=transforms, parallel=parallel and num_envs > 1)
 
 
-def make_eval_env(cfg: DictConfig, episodes: int, memory=None):
+def eval_seed(cfg: DictConfig, held_out: bool = False) -> int:
+    """The seed of the first evaluation goal: the run's evaluation goals, or the held-out goals (``held_out``)."""
+    return cfg.seed + (HELD_OUT_SEED if held_out else EVAL_SEED)
+
+
+def make_eval_env(cfg: DictConfig, episodes: int, memory=None, *, held_out: bool = False):
     """An evaluation env: one env per episode, seeded as :func:`eval_rollout` reseeds it (fixed goals).
 
-    The run's eval env has ``logger.eval_episodes``; the pretraining checks one of
-    ``memory.pretrain_eval_episodes``, cheaper.
+    The run's eval env has ``logger.eval_episodes`` on the evaluation goals; the pretraining checks
+    one of ``memory.pretrain_eval_episodes`` on held-out goals (``held_out``: a seed range disjoint
+    from the evaluation's), so that no choice of the run is made on the goals it is evaluated on.
     """
-    return make_task_env(cfg, episodes, cfg.seed + 10_000, memory)
+    return make_task_env(cfg, episodes, eval_seed(cfg, held_out), memory)
 
 
 def train_device(cfg: DictConfig) -> torch.device:
@@ -306,9 +316,12 @@ def load_agent(checkpoint: Checkpoint, path: str) -> None:
 
 
 @torch.no_grad()
-def eval_rollout(cfg: DictConfig, eval_env, actor) -> TensorDictBase:
-    """The deterministic evaluation episodes, ``[episodes, T]``, on fixed goals (the eval env is reseeded)."""
-    eval_env.set_seed(cfg.seed + 10_000)
+def eval_rollout(cfg: DictConfig, eval_env, actor, *, held_out: bool = False) -> TensorDictBase:
+    """The deterministic evaluation episodes, ``[episodes, T]``, on fixed goals (the eval env is reseeded).
+
+    ``held_out``: on the held-out goals (:func:`eval_seed`), for choices a run makes.
+    """
+    eval_env.set_seed(eval_seed(cfg, held_out))
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = eval_env.rollout(
             cfg.env.max_episode_steps, actor, break_when_any_done=False, auto_cast_to_device=True
@@ -316,13 +329,14 @@ def eval_rollout(cfg: DictConfig, eval_env, actor) -> TensorDictBase:
     return rollout.reshape(-1, rollout.shape[-1])
 
 
-def evaluate(cfg: DictConfig, eval_env, actor, outcomes: list | None = None) -> dict[str, float]:
+def evaluate(cfg: DictConfig, eval_env, actor, outcomes: list | None = None, *,
+             held_out: bool = False) -> dict[str, float]:
     """Success and return of :func:`eval_rollout`; success is ``is_success`` at an episode's last step.
 
     ``outcomes``: a list that is set to each episode's success (0 / 1), in the order of the fixed goals, so
     that two runs with the same seed can be compared goal by goal (``recipes.her.tools.paired``).
     """
-    rollout = eval_rollout(cfg, eval_env, actor)
+    rollout = eval_rollout(cfg, eval_env, actor, held_out=held_out)
     # float64: 19/20 in float32 is 0.9499999, under a 0.95 target
     success = (rollout["next", "is_success"][:, -1] > 0.5).double()
     if outcomes is not None:
