@@ -7,6 +7,9 @@ env name: ``recall(success_only=True)``, ``recall(env=...)`` and the success rat
 the fix, in one wording: the warning at a store's first write
 (:func:`missing_context`, given by ``MemoryStore.register``) and the errors of a
 recall that needs the missing column (:func:`success_advice`, :func:`env_advice`).
+Rows of an env that has no success flag (MaMuJoCo, any non-goal env) are written
+with ``ZarrStorage(..., goal_conditioned=False)``: the success column is then not
+asked for (an env name still is).
 
 Example:
     >>> import torch
@@ -16,6 +19,8 @@ Example:
     >>> print(missing_context(rows, torch.full((2,), -1), "m.zarr").splitlines()[0])
     ZarrStorage at 'm.zarr': the rows written have no ('next', 'is_success') column and no env name, so:
     >>> missing_context(rows.set(("next", "is_success"), torch.ones(2)), torch.zeros(2), "m.zarr") is None
+    True
+    >>> missing_context(rows.exclude("next"), torch.zeros(2), "m.zarr", goal_conditioned=False) is None
     True
 """
 from __future__ import annotations
@@ -56,17 +61,23 @@ def env_advice() -> str:
     return f"To record it, {_ENV_FIX}."
 
 
-def missing_context(rows: TensorDictBase, env: torch.Tensor | None, path: Any) -> str | None:
+def missing_context(rows: TensorDictBase, env: torch.Tensor | None, path: Any, *,
+                    goal_conditioned: bool = True) -> str | None:
     """The warning for rows written without a success column or an env name, or ``None`` if they have both.
 
     Args:
         rows (TensorDictBase): the rows of a write (TensorDict data).
         env (torch.Tensor or None): their env codes (``-1``: no env name); ``None`` for data without tags.
         path: the store, named in the message.
+
+    Keyword Args:
+        goal_conditioned (bool, optional): the rows come from a goal env, which has a success flag to
+            record. ``False`` (``ZarrStorage(..., goal_conditioned=False)``: MaMuJoCo, any env without
+            one): a missing success column is not reported. Defaults to ``True``.
     """
     if env is None:
         return None
-    no_success = rows.get(SUCCESS_KEY, None) is None
+    no_success = goal_conditioned and rows.get(SUCCESS_KEY, None) is None
     no_env = bool((torch.as_tensor(env) == UNKNOWN_ENV).any())
     if not (no_success or no_env):
         return None
@@ -81,6 +92,8 @@ def missing_context(rows: TensorDictBase, env: torch.Tensor | None, path: Any) -
         f"ZarrStorage at {str(path)!r}: the rows written have {what}, so:", *lost,
         "The rows are stored all the same. To keep that context: " + "; and ".join(fixes) + ". "
         "docs/swap.md shows both for a stock TorchRL script. (Said once per storage, at its first write.)",
+        *(["An env without a success flag (MaMuJoCo, any env that is not goal-conditioned): "
+           "ZarrStorage(path, ..., goal_conditioned=False) says so, and this is not asked again."] if no_success else []),
     ])
 
 

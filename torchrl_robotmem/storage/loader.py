@@ -202,7 +202,7 @@ def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> i
 
 
 def check_arguments(path, max_size, *, chunk_rows, commit_interval, ndim, shared_init, compressor,
-                    compression_level, on_damage, read_only) -> None:
+                    compression_level, on_damage, read_only, goal_conditioned=None) -> None:
     """Raises, saying what to pass instead, on constructor arguments ``ZarrStorage`` refuses.
 
     Args:
@@ -210,8 +210,8 @@ def check_arguments(path, max_size, *, chunk_rows, commit_interval, ndim, shared
         max_size (int or None): the capacity.
 
     Keyword Args:
-        chunk_rows, commit_interval, ndim, shared_init, compressor, compression_level, on_damage, read_only:
-            ``ZarrStorage``'s arguments of those names.
+        chunk_rows, commit_interval, ndim, shared_init, compressor, compression_level, on_damage, read_only,
+            goal_conditioned: ``ZarrStorage``'s arguments of those names.
 
     Example:
         >>> check_arguments("memory://a", 10, chunk_rows=None, commit_interval=1.0, ndim=1, shared_init=False,
@@ -243,3 +243,5 @@ def check_arguments(path, max_size, *, chunk_rows, commit_interval, ndim, shared
             f"on_damage must be 'raise', or 'warn' with read_only=True (a damaged store is not "
             f"opened for writing: run `robotmem repair PATH`), got {on_damage!r} with read_only={read_only}."
         )
+    if goal_conditioned is not None and not isinstance(goal_conditioned, (bool, np.bool_)):
+        raise TypeError(f"goal_conditioned must be True, False or None (as the store records), got {goal_conditioned!r}.")

@@ -29,7 +29,11 @@ from .store_schema import StoreSchema
 from .summary import summarize
 from .tags import TAG_KEYS
 
-__all__ = ["MemoryStore"]
+__all__ = ["GOAL_CONDITIONED", "MemoryStore"]
+
+#: the optional attribute of the commit record that says the rows are not goal-conditioned (``false``);
+#: a store without it (every store written before it existed) is goal-conditioned
+GOAL_CONDITIONED = "goal_conditioned"
 
 
 class MemoryStore:
@@ -38,10 +42,11 @@ class MemoryStore:
     Args:
         path, read_only, storage_options: as ``ZarrStorage`` takes them (for the :class:`StoreHandle`).
         on_damage (str): what opening a damaged store does. commit_process (bool or None): as ``ZarrStorage``.
+        goal_conditioned (bool or None): as ``ZarrStorage`` takes it (``None``: as the store records).
     """
 
     def __init__(self, path: Any, *, read_only: bool, storage_options: dict | None, on_damage: str,
-                 commit_process: bool | None) -> None:
+                 commit_process: bool | None, goal_conditioned: bool | None = None) -> None:
         self.handle = StoreHandle(path, read_only=read_only, storage_options=storage_options)
         self.handle.flush = self.flush  # a newer writable handle in this process flushes this one first
         self.read_only = self.handle.read_only
@@ -51,6 +56,9 @@ class MemoryStore:
         self.cursor = 0
         self.restored_writers: weakref.WeakSet | None = None  # set once the store is open
         self.context_checked = False  # a success column and an env name: checked at this handle's first write
+        self.goal_conditioned_arg = goal_conditioned  # as given (None: as recorded)
+        self.goal_conditioned = True if goal_conditioned is None else bool(goal_conditioned)
+        self.recorded_goal_conditioned = True  # what the store's record says (no attribute: True)
         self.before_close: list[Callable[[], Any]] = []  # components' flushes (weak methods), run first on close
 
     def claim(self):
@@ -85,7 +93,14 @@ class MemoryStore:
         self.restored_writers = weakref.WeakSet()  # this session's state
 
     def open_arrays(self) -> None:
-        """A writer's handles on the stored arrays; starts its commit worker (after the open's reads)."""
+        """A writer's handles on the stored arrays; starts its commit worker (after the open's reads).
+
+        A writer given ``goal_conditioned=`` first records it if the store says otherwise, so that a
+        later ``ZarrStorage(path)`` remembers it (a store never told keeps no attribute).
+        """
+        if self.goal_conditioned != self.recorded_goal_conditioned:
+            self.engine.update_attrs({GOAL_CONDITIONED: self.goal_conditioned})
+            self.recorded_goal_conditioned = self.goal_conditioned
         if self.engine.worker_path is not None:
             CommitWorker.get()  # started now, not at build: its imports overlap the first writes, not the open's reads
         self.engine.arrays.update(writing_handles(self.handle.group, self.mirror.schema or ()))
@@ -103,6 +118,9 @@ class MemoryStore:
         self.write_count = int(attrs.get("write_count", 0))
         self.cursor = int(attrs.get("cursor", 0))
         self.engine.set_committed(attrs)
+        self.recorded_goal_conditioned = attrs.get(GOAL_CONDITIONED) is not False  # older stores lack it
+        if self.goal_conditioned_arg is None:
+            self.goal_conditioned = self.recorded_goal_conditioned
 
     def env_code(self, name: str, *, create: bool = False) -> int:
         """The integer code of an environment name (``create``: register a new one, writers only)."""
@@ -119,15 +137,15 @@ class MemoryStore:
     def register(self, plan: WritePlan):
         """Applies what a valid plan changes (env names, data kind, warnings, episode ids and run); returns its rows.
 
-        The first TensorDict write of this handle without a success column or an env name
-        warns once, naming the fix (:func:`.context.missing_context`).
+        The first TensorDict write of this handle without a success column (of a goal-conditioned
+        store) or an env name warns once, naming the fix (:func:`.context.missing_context`).
         """
         for name in plan.new_env_names:
             self.env_code(name, create=True)
         self.store_schema.note(plan)
         if not self.context_checked and plan.env is not None:
             self.context_checked = True
-            advice = missing_context(plan.data, plan.env, self.handle.path)
+            advice = missing_context(plan.data, plan.env, self.handle.path, goal_conditioned=self.goal_conditioned)
             if advice is not None:
                 warnings.warn(advice, UserWarning, stacklevel=user_stacklevel())
         if plan.draw is not None and self.tags.tag_rows(plan):

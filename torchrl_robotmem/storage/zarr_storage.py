@@ -58,10 +58,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             ``LazyTensorStorage``'s, for a one-line swap; ``scratch_dir`` is ignored with a warning (:mod:`.compat`).
         sample_tags (bool, optional): include the tags in what ``get`` returns. Defaults to ``False``.
         on_damage (str, optional): ``"raise"`` (default) or ``"warn"`` (``read_only`` only) on a damaged store.
-        goal_conditioned (bool, optional): whether the rows come from a goal env, which has a success flag.
-            ``False`` (MaMuJoCo, any env without ``is_success``): a write without ``("next", "is_success")``
-            gets no advice to record one (a write without an env name still does). A writer records the
-            value in the store; ``None`` (default): as the store records it, goal-conditioned if never told.
+        goal_conditioned (bool, optional): ``False``: the env has no success flag; none is asked for (recorded).
 
     Examples:
         >>> import tempfile, torch
@@ -97,11 +94,9 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         self._store = MemoryStore(path, read_only=read_only, storage_options=storage_options, on_damage=on_damage,
                                   commit_process=commit_process, goal_conditioned=goal_conditioned)
         self._handle = self._store.handle  # the parts, as the tests and benchmarks read them
-        self.path = self._handle.path
-        self.read_only = self._handle.read_only
+        self.path, self.read_only = self._handle.path, self._handle.read_only
         self._storage_options = storage_options
-        # what storage.get() (hence rb.sample()) leaves out: the tags, unless asked for
-        self._hidden = () if sample_tags else TAG_KEYS
+        self._hidden = () if sample_tags else TAG_KEYS  # what get() (hence rb.sample()) leaves out, unless asked for
         previous = self._store.claim()
         try:
             self._open(max_size, env=env, ndim=int(ndim), chunk_rows=chunk_rows, device=device, compilable=compilable,
@@ -128,7 +123,6 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._load_rows(attrs)
         if not self.read_only:
             self.env = attrs.get("env") if env is None else env  # by default, the previous run's env
-            store.record_goal_conditioned(attrs)  # by default, what the store records
             store.open_arrays()
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._mirror.schema is not None:
@@ -183,11 +177,6 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
     def env_code(self, name: str, *, create: bool = False) -> int:
         """The integer code of an environment name (``create``: register a new one, writers only)."""
         return self._store.env_code(name, create=create)
-
-    @property
-    def goal_conditioned(self) -> bool:
-        """Whether the rows are goal-conditioned (a write without a success flag is then warned about)."""
-        return self._store.goal_conditioned
 
     @property
     def local_dir(self) -> str | None:
