@@ -1,7 +1,9 @@
-"""The package keeps the shape issue 24 gave it: sizes, no import cycle, no private reads.
+"""The package keeps its shape: no import cycle, no private reads across modules.
 
 The figures come from ``python -m tools.structure`` (read with :mod:`ast`, nothing
-imported); each assertion names what broke the rule and where.
+imported); each assertion names what broke the rule and where. Module sizes are
+printed by the tool but not limited (issue 41): a module has one job, whatever
+its length, and code is never cut to fit a line count.
 """
 from __future__ import annotations
 
@@ -10,19 +12,6 @@ import pytest
 from tools import structure
 
 REPORT = structure.report()
-
-
-# Known, not yet fixed, and not allowed to grow (none now: ZarrStorage came down from 1,360
-# lines to under 400 in issue 24). Lower a figure when a class shrinks; remove an entry once
-# it is under the limit.
-RATCHET: dict[str, int] = {}
-
-
-def test_no_class_module_or_function_over_the_limits():
-    over = [f"{kind} {name}: {lines} lines" for kind, name, lines in REPORT["over_limits"]
-            if lines > RATCHET.get(name, 0)]
-    assert not over, (f"over the limits (class {structure.MAX_CLASS}, module {structure.MAX_MODULE}, "
-                      f"function {structure.MAX_FUNCTION} lines; known and capped: {RATCHET}): {over}")
 
 
 def test_no_import_cycle_counting_function_local_imports():

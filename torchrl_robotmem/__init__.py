@@ -9,6 +9,7 @@ Public surface:
 - :class:`OnPolicyBatchSampler`, :class:`CombinedExperienceSampler`, :class:`PersistentPrioritizedSampler`:
   SLM Lab's memory kinds over a persistent storage (package :mod:`torchrl_robotmem.samplers`).
 - :class:`RecallTransform`: an env transform appending the nearest remembered goals.
+- :class:`GoalProposer`: an env transform pursuing remembered goals where the memory is sparsest (MEGA).
 - :class:`RobotMemory`: robotmem's quick-start API over the same store.
 - :func:`make_env` / :func:`make_reward_fn`: Fetch / Shadow Hand envs and HER rewards.
 """
@@ -18,6 +19,7 @@ from ._version import __version__
 from .envs import make_env, make_reward_fn
 from .goal_index import GoalIndex, recall
 from .memory import RobotMemory
+from .proposer import GoalProposer
 from .sampler import GoalSimilaritySampler
 from .samplers import CombinedExperienceSampler, OnPolicyBatchSampler, PersistentPrioritizedSampler
 from .storage import ZarrStorage
@@ -26,6 +28,7 @@ from .transform import RecallTransform
 __all__ = [
     "CombinedExperienceSampler",
     "GoalIndex",
+    "GoalProposer",
     "GoalSimilaritySampler",
     "OnPolicyBatchSampler",
     "PersistentPrioritizedSampler",

@@ -86,6 +86,8 @@ from utils import (
     train_device,
 )
 
+from torchrl_robotmem import GoalProposer
+
 
 @hydra.main(version_base="1.3", config_path="", config_name="config")
 def main(cfg: DictConfig) -> None:
@@ -119,6 +121,7 @@ def main(cfg: DictConfig) -> None:
     # Create environments (the recall transform reads the same memory, live)
     train_env, eval_env = make_environment(cfg, memory=replay_buffer.storage)
     recall = train_env.transform[-1] if cfg.memory.recall.enabled else None
+    proposer = next((t for t in train_env.transform if isinstance(t, GoalProposer)), None)
 
     # Prior memories sampled beside the run's own buffer (floating columns cast to this run's dtypes)
     mix = make_prior_mix(cfg, replay_buffer, priors, dtypes=prior_dtypes)
@@ -316,6 +319,8 @@ def main(cfg: DictConfig) -> None:
         "pretrain_stopped": pretrained["stopped"], "priors": prior_summaries,
         "loop_wall_s": round(loop["wall_s"], 3),
         "frames_per_s": round(loop["frames"] / loop["wall_s"], 2) if loop["wall_s"] else None,
+        "proposer": None if proposer is None else {"proposed": proposer.proposed, "kept": proposer.kept,
+                                                    "seconds": round(proposer.seconds, 3)},
     }
     if hasattr(replay_buffer.storage, "close"):
         replay_buffer.storage.close()

@@ -195,6 +195,17 @@ def make_recall(cfg: DictConfig, memory):
     return _build(cfg.memory.recall, memory=to_absolute_path(str(other)) if other else memory)
 
 
+def make_proposer(cfg: DictConfig, memory, seed: int):
+    """A :class:`~torchrl_robotmem.GoalProposer` over this run's memory (``memory.propose``), or ``None``.
+
+    Training episodes then pursue remembered achieved goals where the memory is sparsest (MEGA); the
+    evaluation env is built without it and keeps the env's own goals.
+    """
+    if not cfg.memory.get("propose") or not cfg.memory.propose.enabled:
+        return None
+    return _build(cfg.memory.propose, memory=memory, env=cfg.env.name, seed=seed)
+
+
 def refresh_recall(batch: TensorDictBase, recall) -> TensorDictBase:
     """Recalls the priors of the (relabelled) goals of a sampled batch, at t and t+1."""
     recall.forward(batch)
@@ -225,7 +236,8 @@ def make_environment(cfg: DictConfig, memory=None):
 
     ``train.py`` has checked the collection batch against the envs (:func:`check_env_batch`) before opening the memory.
     """
-    train = make_task_env(cfg, cfg.env.num_envs, cfg.seed, memory, parallel=bool(cfg.env.get("parallel", False)))
+    train = make_task_env(cfg, cfg.env.num_envs, cfg.seed, memory, parallel=bool(cfg.env.get("parallel", False)),
+                          propose=True)
     return train, make_eval_env(cfg, cfg.logger.eval_episodes, memory)
 
 
@@ -247,11 +259,17 @@ def check_env_batch(cfg: DictConfig) -> None:
             f"frames_per_batch must be a multiple of {n * steps}: e.g. collector.frames_per_batch={good}.")
 
 
-def make_task_env(cfg: DictConfig, num_envs: int, seed: int, memory=None, parallel: bool = False):
+def make_task_env(cfg: DictConfig, num_envs: int, seed: int, memory=None, parallel: bool = False,
+                  propose: bool = False):
     """``num_envs`` envs of ``cfg.env.name`` (in series, or one process each with ``parallel``), with the episode
-    reward and (when enabled) recall; the transforms run in this process, on the whole batch."""
+    reward and (when enabled) recall; the transforms run in this process, on the whole batch.
+
+    ``propose``: a training env, whose goals the :class:`~torchrl_robotmem.GoalProposer` of ``memory.propose``
+    chooses (when enabled); first, so that the episode reward and recall see the goal pursued.
+    """
     recall = make_recall(cfg, memory) if memory is not None else None
-    transforms = [RewardSum()] + ([recall] if recall is not None else [])
+    proposer = make_proposer(cfg, memory, seed) if memory is not None and propose else None
+    transforms = ([proposer] if proposer is not None else []) + [RewardSum()] + ([recall] if recall is not None else [])
     return make_env(cfg.env.name, num_envs, seed=seed, max_episode_steps=cfg.env.max_episode_steps,
                     transforms=transforms, parallel=parallel and num_envs > 1)
 

@@ -30,7 +30,7 @@ import torch
 from torchrl.data.replay_buffers.samplers import PrioritizedSampler
 from zarr.core.sync import sync as zarr_sync
 
-from torchrl_robotmem.storage import _backend, lifecycle
+from torchrl_robotmem.storage import lifecycle, make_compressors
 from torchrl_robotmem.storage.format import RESERVED
 from torchrl_robotmem.storage.zarr_storage import ZarrStorage, component_group, flush_before_close
 
@@ -287,7 +287,7 @@ def _read_state(storage: ZarrStorage, name: str, capacity: int) -> _Stored | Non
 def _create_array(group, name: str, size: int, rows: int, dtype: np.dtype):
     """A new, empty array of ``size`` rows (no record names it: ``overwrite`` drops only unreferenced slots)."""
     return group.create_array(name, shape=(size,), chunks=(rows,), dtype=dtype, fill_value=0, overwrite=True,
-                              compressors=_backend.make_compressors("zstd", 3, dtype.itemsize),
+                              compressors=make_compressors("zstd", 3, dtype.itemsize),
                               config={"write_empty_chunks": True})
 
 

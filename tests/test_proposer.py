@@ -1,0 +1,165 @@
+"""GoalProposer: training episodes pursue remembered achieved goals where the memory is sparsest (MEGA).
+
+Real stores, real Fetch envs and a real recipe run: the proposed goals are goals
+the memory achieved, in its sparse regions; the episode pursues its goal with
+rewards and success recomputed for it; evaluation goals are untouched; a
+memory reopened from disk proposes the same way; and the recipe switch runs
+with HER.
+"""
+from __future__ import annotations
+
+import pickle
+
+import pytest
+import torch
+from tensordict import TensorDict
+from test_recipes import run_recipe
+from torchrl.collectors import Collector
+from torchrl.data import TensorDictReplayBuffer
+from torchrl.envs.utils import step_mdp
+
+from torchrl_robotmem import GoalProposer, ZarrStorage, make_env, make_reward_fn
+
+ENV = "FetchReach-v4"
+
+
+def _stored(goals: torch.Tensor, stored: torch.Tensor) -> bool:
+    """Whether every row of ``goals`` is, bit for bit, a row of ``stored``."""
+    return bool((goals[:, None, :] == stored[None, :, :]).all(-1).any(-1).all())
+
+
+def _goal_rows(goals: torch.Tensor) -> TensorDict:
+    n = goals.shape[0]
+    return TensorDict({"observation": torch.zeros(n, 4),
+                       ("next", "achieved_goal"): goals,
+                       ("next", "done"): torch.ones(n, 1, dtype=torch.bool)}, [n])
+
+
+@pytest.fixture(scope="module")
+def clustered(tmp_path_factory):
+    """800 achieved goals in a tight cluster and 200 spread far from it (a dense region and a sparse one)."""
+    g = torch.Generator().manual_seed(0)
+    center = torch.tensor([1.3, 0.75, 0.5])
+    dense = center + 0.002 * torch.randn(800, 3, generator=g)
+    sparse = center + torch.nn.functional.normalize(torch.randn(200, 3, generator=g), dim=-1) * (
+        0.1 + 0.1 * torch.rand(200, 1, generator=g))
+    path = str(tmp_path_factory.mktemp("clustered") / "m.zarr")
+    with ZarrStorage(path, 2000, env=ENV) as s:
+        s.set(slice(0, 1000), _goal_rows(torch.cat([dense, sparse])))
+    return path, center
+
+
+def test_proposals_are_achieved_goals_of_the_sparse_region(clustered):
+    path, center = clustered
+    proposer = GoalProposer(path, ENV, num_candidates=50, k=5, warmup_rows=10, seed=1)
+    proposed = proposer.propose(40)
+    stored = ZarrStorage(path, read_only=True)["next", "achieved_goal"][:1000]
+    assert proposed.shape == (40, 3)
+    assert _stored(proposed, stored)  # each one a stored achieved goal
+    assert ((proposed - center).norm(dim=-1) > 0.09).all()  # every one from the sparse 20%, none from the cluster
+    # the density is what decides: the same draws with k larger than the cluster still prefer the outliers
+    assert ((GoalProposer(path, ENV, num_candidates=50, k=50, warmup_rows=10, seed=1).propose(40) - center)
+            .norm(dim=-1) > 0.09).all()
+
+
+def test_no_proposal_below_warmup_and_rate_zero_keeps_the_env_goals(clustered):
+    path, _ = clustered
+    assert GoalProposer(path, ENV, warmup_rows=1001).propose(3) is None
+    env = make_env(ENV, seed=5, transforms=[GoalProposer(path, ENV, warmup_rows=10, rate=0.0, seed=0)])
+    plain = make_env(ENV, seed=5)
+    assert torch.equal(env.reset()["desired_goal"], plain.reset()["desired_goal"])
+
+
+@pytest.fixture(scope="module")
+def reach_memory(tmp_path_factory):
+    """A real FetchReach memory: 400 random-policy frames (8 episodes)."""
+    path = str(tmp_path_factory.mktemp("reach") / "reach.zarr")
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 5000, env=ENV))
+    collector = Collector(lambda: make_env(ENV, seed=0), None, frames_per_batch=200, total_frames=400)
+    for data in collector:
+        rb.extend(data.reshape(-1))
+    collector.shutdown()
+    rb.storage.close()
+    return path
+
+
+def test_an_episode_pursues_its_proposed_goal_with_consistent_rewards(reach_memory):
+    proposer = GoalProposer(reach_memory, ENV, num_candidates=20, k=3, warmup_rows=100, seed=2)
+    env = make_env(ENV, 3, seed=7, transforms=[proposer])
+    episode = env.rollout(20)  # [3 envs, 20 steps]
+    stored = ZarrStorage(reach_memory, read_only=True)["next", "achieved_goal"][:400]
+    goals = episode["desired_goal"][:, 0]
+    assert _stored(goals, stored)  # proposed: achieved by the memory
+    assert (episode["desired_goal"] == goals.unsqueeze(1)).all() and (episode["next", "desired_goal"] == goals.unsqueeze(1)).all()
+    reward_fn = make_reward_fn(ENV)
+    expected = reward_fn(episode)  # the task's own compute_reward of the achieved goal and the goal pursued
+    assert torch.equal(episode["next", "reward"], expected.to(episode["next", "reward"].dtype))
+    success = reward_fn.success(episode)
+    assert torch.equal(episode["next", "is_success"].reshape(success.shape).float(), success)
+    assert proposer.proposed == 3 and proposer.kept == 0
+
+
+def test_a_partial_reset_proposes_for_the_reset_env_only(reach_memory):
+    proposer = GoalProposer(reach_memory, ENV, num_candidates=20, k=3, warmup_rows=100, seed=3)
+    env = make_env(ENV, 2, seed=1, transforms=[proposer])
+    td = env.reset()
+    first = td["desired_goal"].clone()
+    td = step_mdp(env.rand_step(td))  # what a collector holds between steps
+    td["_reset"] = torch.tensor([[False], [True]])
+    after = env.reset(td)
+    assert torch.equal(after["desired_goal"][0], first[0])  # the running env keeps the goal it pursues
+    assert not torch.equal(after["desired_goal"][1], first[1])
+    assert proposer.proposed == 3
+
+
+def test_evaluation_goals_are_untouched_and_a_reopened_memory_proposes_alike(reach_memory, tmp_path):
+    """The recipe's eval env has no proposer; a pickled proposer, reopening the store, proposes the same goals."""
+    from omegaconf import OmegaConf
+
+    from recipes.her.utils import make_environment
+
+    cfg = OmegaConf.create({
+        "seed": 0, "env": {"name": ENV, "max_episode_steps": 50, "num_envs": 1, "parallel": False},
+        "logger": {"eval_episodes": 3},
+        "memory": {"recall": {"enabled": False},
+                   "propose": {"enabled": True, "_target_": "torchrl_robotmem.GoalProposer", "num_candidates": 10,
+                               "k": 3, "rate": 1.0, "warmup_rows": 100}},
+    })
+    storage = ZarrStorage(reach_memory, read_only=True)
+    train, evaluation = make_environment(cfg, memory=storage)
+    assert any(isinstance(t, GoalProposer) for t in train.transform)
+    assert not any(isinstance(t, GoalProposer) for t in evaluation.transform)
+    plain = make_env(ENV, 3, seed=cfg.seed + 10_000)
+    evaluation.set_seed(cfg.seed + 10_000)
+    plain.set_seed(cfg.seed + 10_000)
+    assert torch.equal(evaluation.reset()["desired_goal"], plain.reset()["desired_goal"])
+    # reopened: a proposer on the path, sent through pickle, proposes what one on the live storage does
+    a = GoalProposer(reach_memory, ENV, num_candidates=30, k=3, warmup_rows=100, seed=4)
+    b = pickle.loads(pickle.dumps(GoalProposer(reach_memory, ENV, num_candidates=30, k=3, warmup_rows=100, seed=4)))
+    assert torch.equal(a.propose(5), b.propose(5))
+
+
+def test_bad_arguments_are_refused_naming_them(reach_memory):
+    for kwargs, named in (({"k": 0}, "k must be"), ({"num_candidates": -1}, "num_candidates must be"),
+                          ({"rate": 1.5}, "rate must be"), ({"warmup_rows": 2.5}, "warmup_rows must be")):
+        with pytest.raises(ValueError, match=named):
+            GoalProposer(reach_memory, ENV, **kwargs)
+    with pytest.raises(TypeError, match="env must be the task's id"):
+        GoalProposer(reach_memory, "")
+
+
+def test_the_recipe_switch_runs_with_her_and_reports_the_proposals(tmp_path):
+    mem = tmp_path / "mem.zarr"
+    s = run_recipe(tmp_path, f"memory.path={mem}", "memory.propose.enabled=true", "memory.propose.warmup_rows=25",
+                   "memory.propose.num_candidates=10", "memory.propose.k=3", "collector.total_frames=150",
+                   "collector.frames_per_batch=50")
+    assert s["frames"] == 150 and s["memory_rows_after"] == 150 and s["updates"] > 0
+    # episodes of 50 frames, one a batch; an episode's reset comes before the batch that ends it is stored: the
+    # first two start on an empty memory (kept), the third on the first episode's 50 rows (proposed)
+    assert s["proposer"]["kept"] >= 2 and s["proposer"]["proposed"] >= 1
+    stored = ZarrStorage(mem, read_only=True)
+    goals, achieved = stored["desired_goal"][:150], stored["next", "achieved_goal"][:50]
+    assert _stored(goals[100:101], achieved)  # the third episode pursues a goal the first achieved
+    assert (goals[100:] == goals[100]).all()
+    reward = make_reward_fn(ENV)(stored[:150])
+    assert torch.equal(stored["next", "reward"][:150], reward.to(stored["next", "reward"].dtype))

@@ -1,0 +1,285 @@
+"""An env transform that chooses the goal each training episode pursues from the memory's achieved goals.
+
+:class:`GoalProposer` replaces, at each reset, the goal an env hands the agent
+with one the memory has already achieved, chosen where the memory is sparsest:
+the frontier of what the agent can do. This is MEGA's goal selection (Pitis
+et al., "Maximum Entropy Gain Exploration for Long Horizon Multi-goal
+Reinforcement Learning," ICML 2020, https://arxiv.org/abs/2007.02832):
+sample candidate goals among the achieved ones, estimate the density of the
+achieved goals at each, pursue the one of lowest density. The density here
+is the distance to the ``k``-th nearest stored achieved goal, answered
+exactly by the storage's :class:`~torchrl_robotmem.goal_index.GoalIndex`
+(larger distance, sparser region), over every run the memory holds: a second
+run starts proposing where the first one's frontier was.
+
+The proposed goal is the goal of the episode everywhere the data sees it:
+``desired_goal`` in the observations and the reward and ``is_success`` of
+every step are recomputed for it with the task's own ``compute_reward``
+(:class:`~torchrl_robotmem.envs.GoalRewardFn`), so stored transitions are
+consistent and HER relabels them as any others. Evaluation envs are built
+without it and keep the env's own goals.
+
+Example:
+    >>> import tempfile, torch
+    >>> from torchrl.collectors import Collector
+    >>> from torchrl.data import TensorDictReplayBuffer
+    >>> from torchrl_robotmem import GoalProposer, ZarrStorage, make_env
+    >>> path = tempfile.mkdtemp() + "/reach.zarr"
+    >>> rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 10_000, env="FetchReach-v4"))
+    >>> collector = Collector(lambda: make_env("FetchReach-v4", seed=0), None, frames_per_batch=100, total_frames=300)
+    >>> for data in collector:
+    ...     _ = rb.extend(data.reshape(-1))
+    >>> collector.shutdown()
+    >>> proposer = GoalProposer(rb, "FetchReach-v4", warmup_rows=100, seed=0)
+    >>> env = make_env("FetchReach-v4", seed=1, transforms=[proposer])
+    >>> episode = env.rollout(3)  # resets, then steps
+    >>> goal = episode["desired_goal"][0]
+    >>> goals = rb.storage["next", "achieved_goal"][: len(rb)]
+    >>> bool((goals == goal).all(-1).any())  # a goal the memory achieved
+    True
+    >>> bool((episode["next", "desired_goal"] == goal).all())  # pursued for the whole episode
+    True
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey, unravel_key
+from torchrl.data.replay_buffers.storages import Storage
+from torchrl.envs import Transform
+
+from .envs import GoalRewardFn
+from .goal_index import GoalIndex, RowFilter
+from .goal_index.metrics import GoalMetric, get_metric
+from .memory_source import MemorySource
+
+__all__ = ["GoalProposer"]
+
+
+class GoalProposer(Transform):
+    """Pursues, in training episodes, remembered achieved goals where the memory is sparsest (MEGA).
+
+    At every reset of an env (all of them, or the rows a batched env's ``"_reset"`` flags), with
+    probability ``rate`` the episode's goal becomes a proposed one:
+
+    1. ``num_candidates`` rows are drawn uniformly among the memory's rows (those ``filter`` keeps);
+    2. for each candidate's achieved goal, the distance to its ``k``-th nearest stored achieved goal
+       is found (exact, :meth:`GoalIndex.search <torchrl_robotmem.goal_index.GoalIndex.search>`);
+    3. the candidate with the largest such distance (the lowest density) is the goal.
+
+    Until the memory holds ``warmup_rows`` rows, and in the other episodes, the env's own goal is kept.
+    The episode's ``desired_goal``, ``("next", "desired_goal")``, ``("next", "reward")`` and
+    ``("next", "is_success")`` are rewritten for the goal pursued at every step. Put it on the
+    training env only (evaluation keeps the env's goals), *outside* a batched env, and before any
+    transform that reads ``desired_goal``, such as :class:`~torchrl_robotmem.RecallTransform` (a
+    later transform sees the proposed goal).
+
+    Args:
+        memory (str, os.PathLike, Storage or ReplayBuffer): the memory whose achieved goals are
+            proposed: the buffer the collector writes into (read live: goals achieved in this run
+            join the candidates as they are stored), or a store path (opened ``read_only``).
+        env (str): the task id (``"FetchPickAndPlace-v4"``, ``"HandReach-v3"``), whose
+            ``compute_reward`` rewards the proposed goals.
+
+    Keyword Args:
+        num_candidates (int): candidate goals per proposal. Default: ``100``.
+        k (int): the neighbour whose distance measures density. Default: ``10``.
+        rate (float): the probability that an episode pursues a proposed goal (``0`` turns the
+            proposer off, ``1`` proposes every goal). Default: ``1.0``.
+        warmup_rows (int): stored rows below which nothing is proposed. Default: ``1000``.
+        in_key (NestedKey): the goal key of the env. Default: ``"desired_goal"``.
+        goal_key (NestedKey): the stored column of achieved goals. Default: ``("next", "achieved_goal")``.
+        achieved_key (NestedKey): the env's achieved goal, in a step's ``"next"``. Default: ``"achieved_goal"``.
+        reward_key, success_key (NestedKey): the step's reward and success, rewritten. Defaults:
+            ``"reward"`` and ``"is_success"`` (inside ``"next"``).
+        metric (str or GoalMetric): goal distance, as for :class:`~torchrl_robotmem.RecallTransform`.
+            Default: ``"euclidean"``.
+        filter (RowFilter or mapping, optional): which rows may be proposed and count in the density
+            (e.g. ``{"env": "FetchPush-v4"}``). Default: every row.
+        seed (int, optional): seeds the transform's own generator (candidate draws and the ``rate``
+            coin). Default: ``None`` (drawn from torch's global generator at the first proposal).
+
+    Example:
+        >>> from torchrl_robotmem import GoalProposer
+        >>> GoalProposer("memory/pickandplace.zarr", "FetchPickAndPlace-v4", num_candidates=50, k=5, rate=0.5)
+        GoalProposer(memory='memory/pickandplace.zarr', env='FetchPickAndPlace-v4', num_candidates=50, k=5, rate=0.5, warmup_rows=1000)
+    """
+
+    def __init__(
+        self,
+        memory: str | os.PathLike | Storage | Any,
+        env: str,
+        *,
+        num_candidates: int = 100,
+        k: int = 10,
+        rate: float = 1.0,
+        warmup_rows: int = 1000,
+        in_key: NestedKey = "desired_goal",
+        goal_key: NestedKey = ("next", "achieved_goal"),
+        achieved_key: NestedKey = "achieved_goal",
+        reward_key: NestedKey = "reward",
+        success_key: NestedKey = "is_success",
+        metric: str | GoalMetric | Callable = "euclidean",
+        filter: RowFilter | Mapping[str, Any] | None = None,
+        seed: int | None = None,
+    ) -> None:
+        for name, value, low in (("num_candidates", num_candidates, 1), ("k", k, 1), ("warmup_rows", warmup_rows, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}.")
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0.0 <= float(rate) <= 1.0:
+            raise ValueError(f"rate must be a probability in [0, 1], got {rate!r}.")
+        if not isinstance(env, str) or not env:
+            raise TypeError(f"env must be the task's id (e.g. 'FetchPickAndPlace-v4'), got {env!r}.")
+        in_key, achieved_key = unravel_key(in_key), unravel_key(achieved_key)
+        self._source = MemorySource(memory, None)
+        self._metric_obj = get_metric(metric)
+        self.filter = RowFilter.coerce(filter)
+        super().__init__(in_keys=[in_key], out_keys=[in_key])
+        self.env_id = env
+        self.num_candidates, self.k, self.rate, self.warmup_rows = num_candidates, k, float(rate), warmup_rows
+        self.goal_key = unravel_key(goal_key)
+        self.achieved_key = achieved_key
+        self.reward_key, self.success_key = unravel_key(reward_key), unravel_key(success_key)
+        self.metric = metric
+        self.seed = seed
+        self._reward = GoalRewardFn(env, achieved_goal_key=achieved_key, desired_goal_key=in_key)
+        self._generator: torch.Generator | None = None
+        self._index: GoalIndex | None = None
+        self._goals: torch.Tensor | None = None  # the goal each env pursues, [*B, goal_dim]
+        self.proposed = 0  # episodes that pursued a proposed goal
+        self.kept = 0  # episodes that kept the env's own goal
+        self.seconds = 0.0  # wall time spent choosing goals (candidates, density search)
+
+    # -- memory ---------------------------------------------------------------
+
+    @property
+    def memory(self) -> str | Storage | Any:
+        """What was passed as ``memory``: a store path, a storage or a replay buffer."""
+        return self._source.memory
+
+    @property
+    def storage(self) -> Storage:
+        """The storage proposed from (a path is opened ``read_only`` on first access)."""
+        return self._source.storage
+
+    @property
+    def index(self) -> GoalIndex:
+        """The storage's shared :class:`~torchrl_robotmem.goal_index.GoalIndex`."""
+        if self._index is None:
+            self._index = GoalIndex.for_storage(self.storage, goal_key=self.goal_key, metric=self._metric_obj)
+        return self._index
+
+    def propose(self, n: int) -> torch.Tensor | None:
+        """``n`` proposed goals ``[n, goal_dim]`` (lowest density among fresh candidates each), or ``None``.
+
+        ``None`` while the memory holds fewer than ``warmup_rows`` rows (or none ``filter`` keeps).
+        """
+        if n == 0 or len(self._source) < max(self.warmup_rows, 1):
+            return None
+        start = time.perf_counter()
+        try:
+            rows = self._candidates(n * self.num_candidates)
+            if rows is None:
+                return None
+            goals = self._source.column(self.goal_key)[rows].reshape(n * self.num_candidates, -1).float()
+            # k + 1: a candidate is a stored row itself, at distance 0 from its own goal
+            dist, _, mask = self.index.search(goals, self.k + 1, filter=self.filter)
+            kth = torch.where(mask, dist, torch.full_like(dist, float("inf"))).amax(-1)  # too few rows: sparse
+            best = kth.reshape(n, self.num_candidates).argmax(-1)
+            return goals.reshape(n, self.num_candidates, -1)[torch.arange(n), best]
+        finally:
+            self.seconds += time.perf_counter() - start
+
+    def _candidates(self, m: int) -> torch.Tensor | None:
+        """``m`` rows drawn uniformly among the stored rows ``filter`` keeps (``None``: no such row)."""
+        generator = self._rng()
+        if self.filter == RowFilter():
+            return torch.randint(len(self._source), (m,), generator=generator)
+        members = self.index.member_rows(filter=self.filter)
+        if members.numel() == 0:
+            return None
+        return members[torch.randint(members.numel(), (m,), generator=generator)]
+
+    def _rng(self) -> torch.Generator:
+        if self._generator is None:
+            seed = self.seed if self.seed is not None else int(torch.randint(2**62, ()).item())
+            self._generator = torch.Generator().manual_seed(seed)
+        return self._generator
+
+    # -- Transform API ---------------------------------------------------------
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        goals = tensordict_reset.get(self.in_keys[0]).clone()
+        batch = goals.shape[:-1]
+        flat = goals.reshape(-1, goals.shape[-1])
+        reset = self._reset_rows(tensordict, batch)
+        if self._goals is not None and self._goals.shape == goals.shape and reset is not None:
+            kept = self._goals.reshape(-1, goals.shape[-1])
+            flat = torch.where(reset.unsqueeze(-1), flat, kept)  # running envs keep the goal they pursue
+        rows = torch.arange(flat.shape[0]) if reset is None else reset.nonzero().squeeze(-1)
+        if rows.numel():
+            coin = torch.rand(rows.numel(), generator=self._rng()) < self.rate
+            chosen = rows[coin]
+            proposed = self.propose(chosen.numel())
+            if proposed is not None:
+                flat[chosen] = proposed.to(flat.dtype)
+                self.proposed += chosen.numel()
+                self.kept += rows.numel() - chosen.numel()
+            else:
+                self.kept += rows.numel()
+        self._goals = flat.reshape(goals.shape)
+        tensordict_reset.set(self.in_keys[0], self._goals.clone())
+        return tensordict_reset
+
+    def _reset_rows(self, tensordict: TensorDictBase | None, batch: torch.Size) -> torch.Tensor | None:
+        """Flat indices' mask of the envs that reset (``None``: all of them)."""
+        if tensordict is None:
+            return None
+        parent = self.parent
+        masks = []
+        for key in (parent.reset_keys if parent is not None else ["_reset"]):
+            flag = tensordict.get(key, None)
+            if flag is None:
+                return None
+            masks.append(flag.reshape(*batch, -1).any(-1).reshape(-1) if len(batch) else flag.reshape(1))
+        if not masks:
+            return None
+        out = masks[0]
+        for other in masks[1:]:
+            out = out | other
+        return out
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        if self._goals is None or self._goals.shape != next_tensordict.get(self.in_keys[0]).shape:
+            self._goals = next_tensordict.get(self.in_keys[0]).clone()  # stepped without a reset through it
+            return next_tensordict
+        next_tensordict.set(self.in_keys[0], self._goals.clone())
+        reward = next_tensordict.get(self.reward_key)
+        next_tensordict.set(self.reward_key, self._reward(next_tensordict).reshape(reward.shape).to(reward.dtype))
+        success = next_tensordict.get(self.success_key, None)
+        if success is not None:
+            next_tensordict.set(self.success_key, self._reward.success(next_tensordict).reshape(success.shape)
+                                .to(success.dtype))
+        return next_tensordict
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise RuntimeError("GoalProposer acts on an env's resets and steps; it has no meaning on stored rows.")
+
+    # -- housekeeping -----------------------------------------------------------
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = super().__getstate__()
+        state["_index"] = None
+        state["_goals"] = None
+        state["_generator"] = None
+        return state
+
+    def __repr__(self) -> str:
+        memory = self.memory if isinstance(self.memory, str) else type(self.memory).__name__
+        return (f"{type(self).__name__}(memory={memory!r}, env={self.env_id!r}, num_candidates={self.num_candidates}, "
+                f"k={self.k}, rate={self.rate}, warmup_rows={self.warmup_rows})")
