@@ -349,11 +349,17 @@ def costs(arm: ArmData) -> str:
 
 PUSH_CLONE = Runs("cloned, anchored", "anchor100-push-s{}", at=0)
 PUSH_SCRATCH = Runs("from scratch", "scratch-push-s{}", at=60000)
+# The clone arms run TD3 with the anchor, a frozen normaliser and no random frames; the scratch arm is the plain SAC
+# recipe: those rows compare two recipes, not the memory alone (issue 42), and say so.
+PUSH_SCRATCH_SAC = Runs("the plain SAC recipe from scratch: another algorithm and settings, not only no memory",
+                        "scratch-push-s{}", at=60000)
 PUSH_PRIOR60 = Runs("noisy memory as prior", "prior-push-s{}", at=60000)
 PNP_CLONE = Runs("own memory cloned", "clone-pnp-s{}", at=0)
 PNP_NOISY = Runs("own noisy memory cloned", "clonenoisy-pnp-s{}", at=0)
 PNP_PUSH = Runs("FetchPush memory as prior", "pushprior-pnp-s{}", at=60000)
 PNP_SCRATCH = Runs("from scratch", "scratch-pnp-s{}", at=60000)
+PNP_SCRATCH_SAC = Runs("the plain SAC recipe from scratch: another algorithm and settings, not only no memory",
+                       "scratch-pnp-s{}", at=60000)
 SLIDE_MEMORY = CrossEnvArm("pooled memory", "pooled_memory")
 SLIDE_CONTROL = CrossEnvArm("pooled control", "pooled_control")
 SLIDE_AT = 65000  # the last evaluation every clamped FetchSlide run has (prior-clip-s1 stopped there)
@@ -390,14 +396,14 @@ class Headline:
 
 HEADLINES = (
     Headline("FetchPush-v4 (3), 500 scripted episodes, actor cloned", "a policy before the first env frame",
-             PUSH_CLONE, PUSH_SCRATCH, "#the-actor-cloned-from-the-memory-kept-by-the-anchor"),
+             PUSH_CLONE, PUSH_SCRATCH_SAC, "#the-actor-cloned-from-the-memory-kept-by-the-anchor"),
     Headline("FetchPush-v4 (3), 500 noisy scripted episodes as half of every batch", "replay data: a plateau below 0.9",
              PUSH_PRIOR60, PUSH_SCRATCH, "#the-memory-as-replay-data-only-a-plateau-below-09"),
     Headline("FetchPush-v4 (3), the noisy memory read by the controller that wrote it (k = 50)",
              "0.95 within 30k new frames, by recall", PUSH30_K50, PUSH30_SAC,
              "#goal-2-fetchpush-from-the-noisy-memory-to-095-within-30k-new-frames"),
     Headline("FetchPickAndPlace-v4 (3), its own 500 scripted episodes, cloned", "a policy before the first env frame",
-             PNP_CLONE, PNP_SCRATCH, "#fetchpickandplace-v4"),
+             PNP_CLONE, PNP_SCRATCH_SAC, "#fetchpickandplace-v4"),
     Headline("FetchPickAndPlace-v4 (3), a FetchPush memory as prior", "pushing, not lifting", PNP_PUSH, PNP_SCRATCH,
              "#fetchpickandplace-v4"),
     Headline("FetchSlide-v4 (5 replicates x 200 episodes), scripted controller, FetchPush + FetchSlide memory",
@@ -479,7 +485,8 @@ def _curve_rows(root: Path, arms: list[tuple[str, str, int]], frames: list[int],
 def push_clone(root: Path) -> str:
     clone, scratch = PUSH_CLONE.read(root), PUSH_SCRATCH.read(root)
     c = compare(clone, scratch)
-    head = (f"**At frame 0, cloned: {slash(clone.values)}; from scratch at 60k frames: {slash(scratch.values)}.** "
+    head = (f"**At frame 0, cloned (TD3, anchor, frozen normaliser): {slash(clone.values)}; the plain SAC recipe "
+            f"from scratch at 60k frames: {slash(scratch.values)}** (two recipes, not the memory alone). "
             f"Run-level: {run_level(c)}. Episode-level: {episode_level(c)}.")
     frames = [0, 2500, 5000, 7500, 10000, 12500]
     rows = []
@@ -580,7 +587,8 @@ def push_goal4(root: Path) -> str:
 def pnp(root: Path) -> str:
     clone, noisy, push, scratch = (a.read(root) for a in (PNP_CLONE, PNP_NOISY, PNP_PUSH, PNP_SCRATCH))
     c1, c2 = compare(clone, scratch), compare(push, scratch)
-    head = (f"**Its own memory cloned: {slash(clone.values)} at frame 0; from scratch at 60k: {slash(scratch.values)}** "
+    head = (f"**Its own memory cloned (TD3, frozen normaliser): {slash(clone.values)} at frame 0; the plain SAC recipe "
+            f"from scratch at 60k: {slash(scratch.values)}** (two recipes, not the memory alone) "
             f"(run-level {run_level(c1)}; episode-level {episode_level(c1)}). A FetchPush memory as prior: "
             f"{slash(push.values)} at 60k (run-level {run_level(c2, short=True)}; episode-level {episode_level(c2)}).")
     anchor = Runs("", "anchor100-pnp-s{}", seeds=(0,))
