@@ -327,7 +327,7 @@ def interval(xs: list[float]) -> str:
 
 
 def wilson_text(successes: int, n: int) -> str:
-    from recipes.cross_env.stats import wilson
+    from recipes.her.tools.stats import wilson
 
     lo, hi = wilson(successes, n)
     return f"{successes}/{n}, Wilson 95% CI [{lo:.2f}, {hi:.2f}]"
@@ -786,8 +786,32 @@ def history_hand_clone(root: Path) -> str:
     return first + "\n\n" + t + "\n\n" + g
 
 
+def reach_second(root: Path) -> str:
+    """FetchReach: the first run from scratch, then a second run (fresh networks) on its memory, pretraining stopped
+    on held-out goals (issue 42): archives ``reach-first-s{s}.json`` / ``reach-second-s{s}.json`` (the runs'
+    summaries)."""
+    rows, frames, zero = [], [], []
+    for s in range(5):
+        first = json.loads((root / "docs" / "runs" / f"reach-first-s{s}.json").read_text())
+        second = json.loads((root / "docs" / "runs" / f"reach-second-s{s}.json").read_text())
+        checks = ", ".join(f"{u}: {f2(x)}" for u, x in second["pretrain_checks"])
+        rows.append([str(s), f"{first['frames_to_target']:,} ({cpu(first['cpu_s'])})", f"{second['memory_rows_before']:,}",
+                     f"{second['pretrain_updates']} ({checks})", f2(second["curve"][0][1]),
+                     f"{second['frames_to_target']:,}", cpu(second["cpu_s"])])
+        frames.append(first["frames_to_target"])
+        zero.append(second["frames_to_target"])
+    t = table(["seed", "first run: frames to 0.95 (training CPU-s)", "memory rows", "second run: pretraining updates "
+               "(held-out checks, 20 episodes each)", "second run at frame 0 (evaluation goals)",
+               "second run: new frames to 0.95", "second run: training CPU-s"], rows)
+    head = (f"**The second run reached 0.95 after {' / '.join(f'{z:,}' for z in zero)} new frames; the first needed "
+            f"{' / '.join(f'{f:,}' for f in frames)}.** Pretraining stopped on held-out goals (seeds disjoint from the "
+            f"evaluation's); the frame-0 figure is the evaluation made after it stopped.")
+    return f"{head}\n\n{t}"
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "summary": summary,
+    "reach_second": reach_second,
     "push_clone": push_clone,
     "push_replay": push_replay,
     "push_goal2": push_goal2,
