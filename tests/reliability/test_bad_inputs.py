@@ -250,6 +250,27 @@ CASES = [
          lambda c: c.rb.extend(_with(c.rows(4), ("nested", ".."), torch.zeros(4)))),
     Case("reserved-zarr-json", "a key `zarr.json`", ValueError, r"'zarr\.json' holds the name 'zarr\.json'.*Rename",
          lambda c: c.rb.extend(_with(c.rows(4), "zarr.json", torch.zeros(4)))),
+    # -- key names a store cannot hold portably (each key is a folder: refused before anything is written) ----
+    Case("key-backslash", "a key `a\\b` (a path separator on Windows)", ValueError,
+         r"Key 'a\\\\b' cannot be stored: its name 'a\\\\b' holds a path separator.*portable file name",
+         lambda c: c.rb.extend(_with(c.rows(4), "a\\b", torch.zeros(4)))),
+    Case("key-control", "a key `tab\\tkey` (a control character)", ValueError,
+         r"Key 'tab\\tkey' cannot be stored: .* holds a control character",
+         lambda c: c.rb.extend(_with(c.rows(4), "tab\tkey", torch.zeros(4)))),
+    Case("key-nested-control", "a key `(nested, \"x\\ny\")`", ValueError,
+         r"Key \('nested', 'x\\ny'\) cannot be stored: its component 'x\\ny' holds a control character",
+         lambda c: c.rb.extend(_with(c.rows(4), ("nested", "x\ny"), torch.zeros(4)))),
+    Case("key-too-long", "a key of 300 characters (a file name holds 255 bytes)", ValueError,
+         r"cannot be stored: .* is 300 bytes long in UTF-8, over the 255",
+         lambda c: c.rb.extend(_with(c.rows(4), "k" * 300, torch.zeros(4)))),
+    Case("key-windows-char", "a key `a:b` (a character Windows file names cannot hold)", ValueError,
+         r"Key 'a:b' cannot be stored: .* Windows file names cannot hold \(':'\)",
+         lambda c: c.rb.extend(_with(c.rows(4), "a:b", torch.zeros(4)))),
+    Case("key-case-twin", "a key `Observation` beside the stored `observation`", ValueError,
+         r"'Observation' differs from 'observation'.*only in letter case",
+         lambda c: c.rb.extend(_with(c.rows(4), "Observation", torch.zeros(4, 5)))),
+    Case("key-constant", "a non-tensor entry named `a\\b`", ValueError, r"Key 'a\\\\b' cannot be stored",
+         lambda c: c.rb.extend(_with(c.rows(4), "a\\b", NonTensorData("x", batch_size=[4])))),
 ]
 
 

@@ -21,7 +21,11 @@ To add a command, add one entry to :data:`COMMANDS`, e.g.
 
 Errors the user can fix (a path that is not a memory, an output that exists)
 are raised as :class:`CLIError`; :func:`main` prints its message without a
-traceback and returns its exit code (2 unless given).
+traceback and returns its exit code (2 unless given). A write that finds no
+room (a full disk, a quota, ``ulimit -f``) or no memory, in any command, is
+one line too (:func:`._build.write_failed`: the command, its target, the cause
+and what is left at the target), exit code 1; :data:`TARGETS` says which
+argument names a command's target.
 
 Example:
     >>> from torchrl_robotmem.cli import main
@@ -35,7 +39,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-__all__ = ["COMMANDS", "CLIError", "build_parser", "main"]
+__all__ = ["COMMANDS", "CLIError", "TARGETS", "build_parser", "main"]
 
 #: command name -> module implementing it (``add_arguments(parser)``, ``run(args) -> int``).
 COMMANDS: dict[str, str] = {
@@ -45,6 +49,12 @@ COMMANDS: dict[str, str] = {
     "import": "torchrl_robotmem.cli.transfer",
     "verify": "torchrl_robotmem.cli.verify", "repair": "torchrl_robotmem.cli.verify",
     "copy": "torchrl_robotmem.cli.copy_memory",
+}
+
+#: command -> ``(argument naming what it writes, whether it builds that beside it and renames it into place)``
+TARGETS: dict[str, tuple[str, bool]] = {
+    "import": ("path", True), "export": ("out", True), "copy": ("dst", True),
+    "repair": ("path", False), "plot": ("out", False),
 }
 
 
@@ -126,3 +136,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
         return 141
+    except Exception as e:  # noqa: BLE001 - only a write without room or memory is turned into a line here
+        from ._build import no_room, write_failed
+
+        if no_room(e) is None:
+            raise
+        arg, built = TARGETS.get(args.command, (None, False))
+        target = getattr(args, arg, None) if arg else None
+        err = write_failed(target, e, built=built, what=None if target else "the command")
+        print(f"robotmem {args.command}: error: {err}", file=sys.stderr)
+        return err.code

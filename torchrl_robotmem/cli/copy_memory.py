@@ -25,7 +25,7 @@ import shutil
 from typing import Any
 
 from . import CLIError
-from ._build import atomic_target, check_target, is_local
+from ._build import atomic_target, check_target, is_local, write_failed
 from ._memory import open_memory
 
 __all__ = ["HELP", "add_arguments", "copy_memory", "run"]
@@ -198,9 +198,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         info = copy_memory(args.src, args.dst)
-    except (OSError, ValueError) as err:  # a missing bucket, no credentials, a refused write: one line
-        raise CLIError(f"copying {args.src!r} to {args.dst!r} failed ({type(err).__name__}: {err}); nothing was "
-                       f"left at {args.dst!r}") from None
+    except (OSError, ValueError, MemoryError) as err:  # a missing bucket, no credentials, no room: one line
+        raise write_failed(args.dst, err, what=f"copying {args.src!r} to {args.dst!r}", url_cleaned=True) from None
     print(f"copied {info['rows']:,} rows ({info['files']:,} files, {info['bytes'] / 2**20:.1f} MiB) from {args.src} "
           f"to {args.dst}; verified: {info['verified']}")
     return 0

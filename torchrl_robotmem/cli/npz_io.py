@@ -8,20 +8,24 @@ Nothing is pickled. ``import`` restores every column and tag, so
 npz -> memory -> npz is bit-exact (float64 columns: with ``keep_float64``;
 by default they are stored as float32). A file without ``__robotmem__`` is
 read as a plain npz of transitions (:mod:`.plain_npz`). Both build their output beside the target
-and rename it into place (:mod:`._build`); a truncated or damaged file is one
-:class:`~torchrl_robotmem.cli.CLIError` naming it, and nothing is created.
+and rename it into place (:mod:`._build`). An imported file is not trusted
+(:mod:`._archive`): every member's zip and ``.npy`` headers are checked against
+the file's size, and what the import will allocate (the arrays, and the RAM
+mirror of ``max_size`` rows) against the memory this process can get, before
+anything is read or created; a truncated, damaged or oversized file is one
+:class:`~torchrl_robotmem.cli.CLIError` naming it and the member, and nothing is created.
 """
 from __future__ import annotations
 
 import json
+import math
 import os
-import zipfile
-import zlib
 from typing import Any
 
 import numpy as np
 
 from . import CLIError
+from ._archive import READ_ERRORS, as_count, check_fits, inspect_npz, read_member
 from ._build import atomic_target, check_target, new_store, progress
 from ._memory import TAGS, column, open_memory, root_attrs, write_order
 from .plain_npz import import_plain_npz
@@ -32,8 +36,7 @@ __all__ = ["META_KEY", "NPZ_FORMAT", "NPZ_VERSION", "export_npz", "import_npz", 
 META_KEY = "__robotmem__"
 NPZ_FORMAT = "torchrl_robotmem.npz"
 NPZ_VERSION = 1
-#: What reading a truncated or damaged npz member raises (zlib, zip and numpy's own checks).
-_NPZ_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+_MAX_RECORD = 64 << 20  # the JSON record: a schema of many keys is a few KiB
 
 
 def export_npz(path: Any, out: str) -> dict[str, Any]:
@@ -129,15 +132,11 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
     data = load_npz(src)
     if META_KEY not in data.files:
         return import_plain_npz(data, src, path, max_size=max_size, env=env, keep_float64=keep_float64, notes=notes)
-    arrays, meta = _read_export(src)
+    arrays, meta, capacity = _read_export(src, max_size=max_size, keep_float64=keep_float64)
     cast = cast_float64(arrays, keep_float64=keep_float64)
     if cast and notes is not None:
         notes.append(f"float64 stored as float32 (--keep-float64 keeps it): {', '.join(sorted(cast))}")
-    rows = int(meta.get("rows", 0))
-    ndim = int(meta.get("ndim", 1))
-    capacity = int(max_size or meta.get("max_size") or rows)
-    if capacity < rows:
-        raise CLIError(f"--max-size {capacity} is smaller than the {rows} rows in {src!r}")
+    rows, ndim = meta["rows"], meta["ndim"]
     with new_store(path, capacity, ndim=ndim, background=False) as storage:
         if rows:
             _load_rows(storage, arrays, meta, src=src, env=env)
@@ -146,35 +145,68 @@ def import_npz(src: str, path: str, *, max_size: int | None = None, env: str | N
     return rows
 
 
-def _read_export(src: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """``(arrays, metadata)`` of the npz export ``src``, every array checked against the metadata."""
+def _read_export(src: str, *, max_size: int | None = None,
+                 keep_float64: bool = True) -> tuple[dict[str, np.ndarray], dict[str, Any], int]:
+    """``(arrays, metadata, capacity)`` of the npz export ``src``, every array checked against the metadata.
+
+    The headers are checked (shapes against the metadata, sizes against the file,
+    the arrays and the new memory's RAM mirror against the memory this process
+    can get) before any array is read.
+    """
     if not os.path.isfile(src):
         raise CLIError(f"{src!r} is not a file")
     data, meta = open_npz(src)
-    if meta.get("format") != NPZ_FORMAT or int(meta.get("version", 0)) > NPZ_VERSION:
+    if meta.get("format") != NPZ_FORMAT or as_count(meta.get("version", 0), src, "version") > NPZ_VERSION:
         raise CLIError(f"{src!r}: unknown npz format {meta.get('format')!r} version {meta.get('version')!r}")
     keys = [k for k in data.files if k != META_KEY]
     schema = meta.get("schema") or {}
+    if not isinstance(schema, dict) or not all(isinstance(v, dict) for v in schema.values()):
+        raise CLIError(f"{src!r}: its record's 'schema' is not a map of arrays (an edited export?)")
     missing = sorted(set(schema) - set(keys))
     if missing:
         raise CLIError(f"{src!r} lacks the arrays {missing} its metadata lists (a cut-off export?); export it again")
-    arrays = {k: _read_npz_array(data, src, k) for k in progress(keys, desc="read", unit="key")}
-    rows = int(meta.get("rows", 0))
-    ndim = int(meta.get("ndim", 1))
+    rows = meta["rows"] = as_count(meta.get("rows", 0), src, "rows")
+    ndim = meta["ndim"] = as_count(meta.get("ndim", 1), src, "ndim")
+    if ndim < 1:
+        raise CLIError(f"{src!r}: its record's 'ndim' is {ndim}, not a positive integer (an edited export?)")
+    members = inspect_npz(src, keys)
     lead = None
-    for k, a in arrays.items():
+    for k in keys:
+        m = members.get(k)
+        if m is None:
+            raise CLIError(f"{src!r}: member {k!r} is not an .npy array; the file is damaged or not a robotmem export")
         spec = schema.get(k)
-        if spec is not None and (str(a.dtype) != spec["dtype"] or
-                                 list(a.shape[a.ndim - len(spec["shape"]):]) != spec["shape"]):
-            raise CLIError(f"{src!r}: array {k!r} has dtype {a.dtype} and shape {list(a.shape)}, "
-                           f"its metadata says {spec['dtype']} {spec['shape']} per row")
-        n0 = a.shape[0] if a.ndim else None
+        if spec is not None and (str(m.dtype) != spec.get("dtype") or
+                                 list(m.shape[len(m.shape) - len(spec.get("shape") or []):]) != spec.get("shape")):
+            raise CLIError(f"{src!r}: array {k!r} has dtype {m.dtype} and shape {list(m.shape)}, "
+                           f"its metadata says {spec.get('dtype')} {spec.get('shape')} per row")
+        n0 = m.shape[0] if m.shape else None
         if n0 is None or (lead is not None and n0 != lead[1]) or (ndim == 1 and n0 != rows):
             raise CLIError(f"{src!r}: array {k!r} holds {n0} rows, but "
                            + (f"{lead[0]!r} holds {lead[1]}" if lead is not None and n0 != lead[1]
                               else f"the metadata says {rows}") + " (a cut-off or edited export); export it again")
         lead = lead or (k, n0)
-    return arrays, meta
+    capacity = _capacity(src, meta, members, max_size, keep_float64)
+    arrays = {k: read_member(data, src, k) for k in progress(keys, desc="read", unit="key")}
+    return arrays, meta, capacity
+
+
+def _capacity(src: str, meta: dict[str, Any], members: dict, max_size: int | None, keep_float64: bool) -> int:
+    """The new memory's ``max_size``, checked: the arrays read and its RAM mirror fit in the memory left."""
+    rows = meta["rows"]
+    capacity = int(max_size) if max_size else as_count(meta.get("max_size") or rows, src, "max_size")
+    if capacity < rows:
+        raise CLIError(f"--max-size {capacity} is smaller than the {rows} rows in {src!r}")
+    n0 = next(iter(members.values())).shape[0] if members else 0
+    per_item = rows // n0 if n0 else 1  # transitions per stored item (ndim > 1: [items, time, ...])
+
+    def stored(m) -> int:
+        return 4 if m.dtype == np.float64 and not keep_float64 else m.dtype.itemsize
+
+    item_bytes = sum(m.row_bytes(stored(m)) for m in members.values())
+    mirror = math.ceil(capacity / max(per_item, 1)) * item_bytes  # allocated at the first write (now, or later)
+    check_fits(members, src, mirror, capacity, "--max-size" if max_size else f"its {META_KEY!r} record's max_size")
+    return capacity
 
 
 def _load_rows(storage, arrays: dict[str, np.ndarray], meta: dict[str, Any], *, src: str, env: str | None) -> None:
@@ -222,12 +254,13 @@ def open_npz(src: str):
         no '__robotmem__' array)
     """
     data = load_npz(src)
+    if META_KEY not in data.files:
+        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (no {META_KEY!r} array)")
+    record = inspect_npz(src, [META_KEY]).get(META_KEY)
+    if record is None or record.dtype.kind != "U" or record.shape != () or record.nbytes > _MAX_RECORD:
+        raise CLIError(f"{src!r}: its {META_KEY!r} member is not a JSON string (an edited export?)")
     try:
         meta = json.loads(str(_read_npz_array(data, src, META_KEY)))
-    except CLIError:
-        if META_KEY in data.files:
-            raise
-        raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (no {META_KEY!r} array)") from None
     except ValueError as err:
         raise CLIError(f"{src!r}: its {META_KEY!r} array is not JSON ({err})") from None
     if not isinstance(meta, dict):
@@ -251,7 +284,9 @@ def load_npz(src: str):
     """
     try:
         data = np.load(src, allow_pickle=False)
-    except _NPZ_READ_ERRORS as err:
+    except MemoryError:
+        raise CLIError(f"{src!r} cannot be read as npz (its zip directory does not fit in memory)") from None
+    except READ_ERRORS as err:
         raise CLIError(f"{src!r} is not an npz export of a torchrl_robotmem memory (it cannot be read as npz: "
                        f"{type(err).__name__}: {err}; a truncated file?)") from None
     if not hasattr(data, "files"):
@@ -262,11 +297,7 @@ def load_npz(src: str):
 def _read_npz_array(data, src: str, key: str) -> np.ndarray:
     if key not in data.files:
         raise CLIError(f"{src!r} has no array {key!r}")
-    try:
-        return data[key]
-    except _NPZ_READ_ERRORS as err:
-        raise CLIError(f"{src!r}: array {key!r} cannot be read ({type(err).__name__}: {err}); the file is "
-                       f"truncated or damaged: export it again") from None
+    return read_member(data, src, key)
 
 
 def _nest(flat: dict[str, Any]) -> dict[str, Any]:

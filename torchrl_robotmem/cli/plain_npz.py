@@ -20,8 +20,10 @@ array                                  needed    stored as
 
 An episode end with neither ``terminated`` nor ``truncated`` set (a ``done``
 or an ``episode`` change alone) is stored as truncated; the last row always
-ends an episode. Other arrays are ignored (and named). The file is read with
-``allow_pickle=False``.
+ends an episode. Other arrays are ignored (and named, not read). The file is read with
+``allow_pickle=False``, and only after the headers of the arrays read are
+checked against the file and what the import allocates (the arrays, the RAM
+mirror of ``max_size`` rows) against the memory left (:mod:`._archive`).
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from . import CLIError
+from ._archive import check_fits, inspect_npz, read_member
 from .transitions import cast_float64, episode_flags, success_from_env, write_transitions
 
 __all__ = ["PLAIN_KEYS", "import_plain_npz", "plain_columns"]
@@ -52,7 +55,7 @@ def plain_columns(arrays: dict[str, np.ndarray], *, src: str, env: str | None = 
     """The memory's columns (flat keys, ``/`` nesting) of a plain npz's ``arrays``; a :class:`CLIError` names a bad one.
 
     Args:
-        arrays (dict): name -> array, as in the file.
+        arrays (dict): name -> array, as in the file (an ignored array may be ``None``: not read).
 
     Keyword Args:
         src (str): the file, named in errors.
@@ -70,6 +73,8 @@ def plain_columns(arrays: dict[str, np.ndarray], *, src: str, env: str | None = 
         (['action', 'done', 'next/done', 'next/observation'], [False, True, False, True])
     """
     notes = notes if notes is not None else []
+    ignored = sorted(k for k in arrays if k not in PLAIN_KEYS)  # named only (the importer does not read them)
+    arrays = {k: a for k, a in arrays.items() if k in PLAIN_KEYS}
     missing = [k for k in ("observation", "next_observation", "action", "reward") if k not in arrays]
     if not any(k in arrays for k in _ENDS):
         missing.append("one of " + "/".join(_ENDS))
@@ -90,7 +95,6 @@ def plain_columns(arrays: dict[str, np.ndarray], *, src: str, env: str | None = 
         if key in arrays and ref in arrays and arrays[key].shape != arrays[ref].shape:
             raise CLIError(f"{src!r}: array {key!r} has shape {list(arrays[key].shape)}, {ref!r} "
                            f"{list(arrays[ref].shape)}: they must match")
-    ignored = sorted(set(arrays) - set(PLAIN_KEYS))
     if ignored:
         notes.append(f"ignored arrays not in the plain-npz layout: {', '.join(ignored)}")
     flags = {k: _flag(arrays[k], k, src, n).astype(bool) for k in ("terminated", "truncated", "done") if k in arrays}
@@ -125,6 +129,21 @@ def plain_columns(arrays: dict[str, np.ndarray], *, src: str, env: str | None = 
     return cols
 
 
+def _check_fits(members: dict, src: str, max_size: int | None, keep_float64: bool) -> None:
+    """The arrays read and the new memory's RAM mirror (``max_size`` rows) against the memory left."""
+    obs = members.get("observation")
+    n = obs.shape[0] if obs is not None and obs.shape else 0
+
+    def per_row(m) -> int:
+        return m.row_bytes(4 if m.dtype == np.float64 and not keep_float64 else None)
+
+    row = sum(per_row(m) for m in members.values()) + 64  # + flags, tags and is_success
+    if "desired_goal" in members and "next_desired_goal" not in members:
+        row += per_row(members["desired_goal"])  # stored twice: at the root and under next
+    capacity = int(max_size or n)
+    check_fits(members, src, capacity * row, capacity, "--max-size" if max_size else "")
+
+
 def import_plain_npz(data, src: str, path: str, *, max_size: int | None = None, env: str | None = None,
                      keep_float64: bool = False, notes: list[str] | None = None) -> int:
     """Creates the memory ``path`` from the plain npz ``data`` (an open ``NpzFile``); returns its rows.
@@ -153,13 +172,14 @@ def import_plain_npz(data, src: str, path: str, *, max_size: int | None = None, 
         'float64 stored as float32 (--keep-float64 keeps it): action, next/observation, next/reward, observation'
     """
     notes = notes if notes is not None else []
-    arrays: dict[str, Any] = {}
-    for key in data.files:
-        try:
-            arrays[key] = data[key]
-        except (OSError, ValueError, KeyError, EOFError) as err:
-            raise CLIError(f"{src!r}: array {key!r} cannot be read ({type(err).__name__}: {err}); the file is "
-                           f"truncated or damaged") from None
+    keys = [k for k in data.files if k in PLAIN_KEYS]
+    members = inspect_npz(src, keys)
+    not_npy = [k for k in keys if k not in members]
+    if not_npy:
+        raise CLIError(f"{src!r}: member {not_npy[0]!r} is not an .npy array; the file is damaged or not an npz")
+    _check_fits(members, src, max_size, keep_float64)
+    arrays: dict[str, Any] = {k: read_member(data, src, k) for k in keys}
+    arrays.update({k: None for k in data.files if k not in PLAIN_KEYS})  # named as ignored, never read
     cols = plain_columns(arrays, src=src, env=env, notes=notes)
     cast = cast_float64(cols, keep_float64=keep_float64)
     if cast:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from . import CLIError
-from ._memory import DONE_KEY, SUCCESS_KEY, flat_column, goal_key, has_key, open_memory
+from ._memory import DONE_KEY, SUCCESS_KEY, flat_column, goal_key, has_key, open_memory, partial_path
 
 __all__ = ["plot_memory", "memory_figures", "add_arguments", "rolling_success", "success_window", "run"]
 
@@ -216,7 +216,14 @@ def _goal_axes(gkey: Any, goal_dim: int, env_name: str) -> tuple[str, str]:
 
 
 def _save(fig, path: str) -> str:
-    fig.savefig(path, dpi=110)
+    """Writes ``fig`` to ``path`` through a hidden sibling: a failed write (a full disk) leaves no half PNG."""
+    tmp = partial_path(path)
+    try:
+        fig.savefig(tmp, dpi=110, format="png")
+        os.replace(tmp, path)
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
     return path
 
 

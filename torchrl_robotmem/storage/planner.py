@@ -22,6 +22,7 @@ Example:
 """
 from __future__ import annotations
 
+import unicodedata
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -34,14 +35,25 @@ from . import _backend
 from .schema import DataKind, check_against, env_names_of, split_constants
 from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag
 
-__all__ = ["StoreView", "WritePlan", "check_constants", "completes_chunk", "cursor_rows", "is_int_cursor", "last_index",
-           "check_rows", "plan_write", "validate", "write_span"]
+__all__ = ["MAX_NAME_BYTES", "StoreView", "WritePlan", "check_constants", "check_key_names", "completes_chunk",
+           "cursor_rows", "is_int_cursor", "key_name_problem", "last_index", "check_rows", "plan_write", "validate",
+           "write_span"]
 
 DONE_KEY = ("next", "done")
 TRAJ_KEY = ("collector", "traj_ids")
 # Written into the caller's TensorDict by TorchRL's TensorDictRoundRobinWriter;
 # it equals the row position, so it is not stored (sample() adds it back).
 DROPPED_KEYS = ("index",)
+#: the longest key name (one path component), in UTF-8 bytes: what ext4, APFS, NTFS and most others hold
+MAX_NAME_BYTES = 255
+#: characters a Windows (NTFS, exFAT, SMB) file name cannot hold, besides control characters and separators
+_WINDOWS_CHARS = frozenset('<>:"|?*')
+#: names Windows gives to devices, with or without an extension, in any letter case
+_DEVICE_NAMES = frozenset({"CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)),
+                           *(f"LPT{i}" for i in range(1, 10))})
+_NAME_RULE = (f"every key name becomes a folder name in the store, so it must be a portable file name: not empty, "
+              f"'.' or '..', at most {MAX_NAME_BYTES} bytes in UTF-8, without '/', '\\', control characters or "
+              f"any of <>:\"|?*, not ending in '.' or ' ', not a Windows device name (CON, NUL, COM1, ...)")
 
 
 class StoreView(NamedTuple):
@@ -406,6 +418,7 @@ def check_constants(view: StoreView, found: dict[str, Any]) -> dict[str, Any]:
                 f"as a tensor of dtype {schema[path]['dtype']}; every write must keep a key's kind."
             )
         if path not in constants:
+            check_key_names([key])
             new[path] = value
         elif constants[path] != value or type(constants[path]) is not type(value):
             raise ValueError(
@@ -441,19 +454,25 @@ def matches_schema(view: StoreView, data: TensorDictBase) -> bool:
 
 
 def validate(view: StoreView, data: TensorDictBase, single: bool) -> list[str]:
-    """Raises, naming the key, on a dtype / shape change; returns the paths of new keys."""
+    """Raises, naming the key, on a dtype / shape change or a new key name a store cannot hold; returns new paths."""
     if matches_schema(view, data):
         return []
     check_user_keys(data.keys(include_nested=True), allowed=(DataKind.TENSOR_KEY, DataKind.PYTREE_KEY))
     if view.mirror.schema is None:
+        keys = []
         for key, value in data.items(include_nested=True, leaves_only=True, is_leaf=_is_leaf_nontensor):
             if not isinstance(value, torch.Tensor):
                 raise TypeError(f"Key {key!r} holds {type(value).__name__}; ZarrStorage stores tensors only.")
             _backend.torch_dtype_name(value.dtype)
+            keys.append(key)
+        check_key_names(keys, held=TAG_KEYS)
+        for key in keys:
             _backend.key_to_path(key)
         return []
     schema = {p: spec for p, spec in view.mirror.schema.items() if p not in TAG_KEYS}
     new, missing = check_against(schema, data, data.batch_dims, repr(view.path))
+    if new:  # a key's name is checked once, at the write that brings it: the keys a store holds are not
+        check_key_names([_backend.path_to_key(p) for p in new], held=view.mirror.schema)
     if missing:
         raise KeyError(
             f"The TensorDict does not match the schema of the store at {view.path!r}: missing keys "
@@ -461,6 +480,96 @@ def validate(view: StoreView, data: TensorDictBase, single: bool) -> list[str]:
             f"store holds (new keys may be added)."
         )
     return new
+
+
+def _short(key: Any) -> str:
+    text = repr(key)
+    return text if len(text) <= 80 else f"{text[:60]}... ({len(text)} characters)"
+
+
+def key_name_problem(name: Any) -> str | None:
+    r"""Why ``name`` (one component of a key) cannot be a folder name on every file system; ``None``: it can.
+
+    A stored key is a path of folders inside the store (``("next", "observation")``
+    -> ``next/observation/``), and a store is copied between Linux, macOS,
+    Windows and object stores: a name one of them cannot hold is refused at the
+    write that brings it, before anything is written.
+
+    Example:
+        >>> key_name_problem("observation") is None, key_name_problem("a\\b")
+        (True, "holds a path separator ('\\\\')")
+    """
+    if not isinstance(name, str):
+        return f"is not a string ({type(name).__name__})"
+    if not name:
+        return "is empty"
+    if name in (".", ".."):
+        return "names a folder itself"
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "is not valid Unicode text (it holds a lone surrogate)"
+    if size > MAX_NAME_BYTES:
+        return f"is {size} bytes long in UTF-8, over the {MAX_NAME_BYTES} a file name may hold"
+    for label, bad in (("a path separator", lambda ch: ch in "/\\"),
+                       ("a control character", lambda ch: unicodedata.category(ch) == "Cc"),
+                       ("a character Windows file names cannot hold", lambda ch: ch in _WINDOWS_CHARS)):
+        found = next((ch for ch in name if bad(ch)), None)
+        if found is not None:
+            return f"holds {label} ({found!r})"
+    if name[-1] in ". ":
+        return f"ends in {name[-1]!r}, which Windows drops from file names"
+    if name.split(".")[0].rstrip(" ").upper() in _DEVICE_NAMES:
+        return "is a Windows device name"
+    if name.casefold() == "zarr.json":
+        return "is the name of the store's metadata files"
+    return None
+
+
+def _fold(path: str) -> str:
+    """What a case-insensitive, normalisation-insensitive file system (macOS, Windows) sees of ``path``."""
+    return unicodedata.normalize("NFC", path).casefold()
+
+
+def check_key_names(keys, *, held=()) -> None:
+    r"""Raises ``ValueError`` naming the first key a store cannot hold portably (see :func:`key_name_problem`).
+
+    Args:
+        keys: the new keys (strings or tuples of strings, as TensorDict keys).
+
+    Keyword Args:
+        held: the paths the store holds already; a new key equal to one of them
+            but for letter case or Unicode normalisation (``Obs`` beside ``obs``)
+            is refused, as macOS and Windows see one folder.
+
+    Example:
+        >>> check_key_names([("next", "observation")], held=["observation"])
+        >>> check_key_names(["tab\tkey"])
+        Traceback (most recent call last):
+        ...
+        ValueError: Key 'tab\tkey' cannot be stored: its name 'tab\tkey' holds a control character ('\t'); ...
+    """
+    seen: dict[str, str] = {}
+    for path in held:
+        parts = path.split("/")
+        for i in range(1, len(parts) + 1):
+            seen.setdefault(_fold("/".join(parts[:i])), "/".join(parts[:i]))
+    for key in keys:
+        parts = (key,) if isinstance(key, str) else tuple(key)
+        for part in parts:
+            why = key_name_problem(part)
+            if why is not None:
+                what = "its name" if len(parts) == 1 else "its component"
+                raise ValueError(f"Key {_short(key)} cannot be stored: {what} {_short(part)} {why}; {_NAME_RULE}. "
+                                 f"Rename it before writing (td.rename_key_(old, new)); nothing was written.")
+        for i in range(1, len(parts) + 1):
+            prefix = "/".join(parts[:i])
+            other = seen.setdefault(_fold(prefix), prefix)
+            if other != prefix:
+                raise ValueError(
+                    f"Key {_short(key)} cannot be stored: {_short(prefix)} differs from {_short(other)} (a key of "
+                    f"the store or of this write) only in letter case or Unicode normalisation, and macOS and "
+                    f"Windows file systems see one folder for both. Rename it before writing; nothing was written.")
 
 
 def _stack_trees(items: list) -> Any:
