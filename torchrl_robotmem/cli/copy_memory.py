@@ -131,7 +131,7 @@ def copy_memory(src: Any, dst: str) -> dict[str, Any]:
         >>> sorted(os.listdir(d)), ZarrStorage(d + "/b.zarr", read_only=True)["obs"].tolist()
         (['a.zarr', 'b.zarr'], [0.0, 1.0, 2.0])
     """
-    from torchrl_robotmem.storage import normalize_path
+    from torchrl_robotmem.storage import normalize_path, refuse_links
 
     storage = open_memory(src)
     try:
@@ -143,6 +143,8 @@ def copy_memory(src: Any, dst: str) -> dict[str, Any]:
         raise CLIError(f"{dst!r} is {src!r} or inside it (or the reverse): copy to another place")
     _refuse_existing(dst)
     src_fs, src_root = _fs(src)
+    if is_local(src) and os.path.isdir(src_root):  # checked at the open too: this is the listing the copy follows
+        refuse_links(src_root, s)
     files = _files(src_fs, src_root)
     record = src_fs.cat_file(_join(src_root, files[-1]))
     if is_local(dst):
