@@ -1,30 +1,41 @@
 # Two entry points: `make demo` and `make test`. Both create .venv on a fresh
 # machine and install with the exact versions of constraints/ci-py311.txt
 # (torch 2.13.0, the CPU build on this machine's disk, so no CUDA wheels are
-# pulled). pyproject.toml itself only states ranges.
+# pulled). pyproject.toml itself only states ranges. `make demo` installs what
+# the demo needs (the package with its [recipes] extra: hydra, matplotlib);
+# `make test` installs [dev] (every extra, pytest, ruff, moto, ...), on top of
+# the demo's install if there is one. Each install has its own stamp.
 PYTHON ?= python3
 CONSTRAINTS ?= constraints/ci-py311.txt
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed
+TORCH_STAMP := $(VENV)/.installed-torch
+DEMO_STAMP  := $(VENV)/.installed-recipes
+DEV_STAMP   := $(VENV)/.installed-dev
 
-.PHONY: install demo test test-full lint bench clean
+.PHONY: install install-demo demo test test-full lint bench clean
 
-install: $(STAMP)
+install: $(DEV_STAMP)
+install-demo: $(DEMO_STAMP)
 
-$(STAMP): pyproject.toml $(CONSTRAINTS)
+# the venv, pip and torch first: the CPU build the constraints name, before anything pulls another
+$(TORCH_STAMP): $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade pip
 	$(PY) -m pip install -c $(CONSTRAINTS) torch
-	$(PY) -m pip install -c $(CONSTRAINTS) -e '.[dev]' --config-settings editable_mode=compat
-	touch $(STAMP)
+	touch $(TORCH_STAMP)
+
+# the package with one extra: .installed-recipes -> '.[recipes]', .installed-dev -> '.[dev]'
+$(VENV)/.installed-%: pyproject.toml $(CONSTRAINTS) $(TORCH_STAMP)
+	$(PY) -m pip install -c $(CONSTRAINTS) -e '.[$*]' --config-settings editable_mode=compat
+	touch $@
 
 # SAC+HER on FetchReach with a short budget, over a persistent memory. Run it
 # again: fresh networks learn from the stored memory first, and it prints how
 # many fewer frames they needed.
 DEMO_ARGS ?= memory.path=memory/demo/FetchReach-v4.zarr logger.target_success=0.95 \
 	collector.total_frames=3000 hydra.run.dir=outputs/demo
-demo: install
+demo: install-demo
 	$(PY) recipes/her/train.py $(DEMO_ARGS)
 
 # two pytest workers (pytest-xdist): most tests wait on subprocesses, so two
