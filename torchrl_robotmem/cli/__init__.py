@@ -39,6 +39,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from .errors import CLIError  # re-exported: `from torchrl_robotmem.cli import CLIError`
+
 __all__ = ["COMMANDS", "CLIError", "TARGETS", "build_parser", "main"]
 
 #: command name -> module implementing it (``add_arguments(parser)``, ``run(args) -> int``).
@@ -56,19 +58,6 @@ TARGETS: dict[str, tuple[str, bool]] = {
     "import": ("path", True), "export": ("out", True), "copy": ("dst", True),
     "repair": ("path", False), "plot": ("out", False),
 }
-
-
-class CLIError(Exception):
-    """An error the user can fix; printed as one line, no traceback.
-
-    Args:
-        message: what went wrong and, where possible, how to fix it.
-        code: the process exit code (default 2, like argparse's usage errors).
-    """
-
-    def __init__(self, message: str, code: int = 2) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 # optional dependencies a command may need, and the extra (pyproject.toml) that installs each

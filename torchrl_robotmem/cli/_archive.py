@@ -41,7 +41,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from . import CLIError
+from .errors import CLIError
 
 __all__ = ["DEFLATE_RATIO", "Member", "available_memory", "check_fits", "check_memory", "inspect_npz", "read_member",
            "size_text"]

@@ -39,8 +39,8 @@ import threading
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
-from . import CLIError
 from ._memory import partial_builds, partial_path
+from .errors import CLIError
 
 if TYPE_CHECKING:
     from torchrl_robotmem.storage import ZarrStorage

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from . import CLIError
+from .errors import CLIError
 
 DONE_KEY = ("next", "done")
 TAGS = ("episode", "run", "env")  # the tag columns, in the order the commands read them

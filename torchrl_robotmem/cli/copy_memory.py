@@ -24,9 +24,9 @@ import os
 import shutil
 from typing import Any
 
-from . import CLIError
 from ._build import atomic_target, check_target, is_local, write_failed
 from ._memory import open_memory
+from .errors import CLIError
 
 __all__ = ["HELP", "add_arguments", "copy_memory", "run"]
 

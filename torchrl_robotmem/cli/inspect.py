@@ -203,7 +203,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.cell <= 0:
-        from . import CLIError
+        from .errors import CLIError
 
         raise CLIError(f"--cell must be > 0, got {args.cell}")
     summary = summarize(args.path, cell=args.cell, goal=args.goal_key)

@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from . import CLIError
 from ._build import atomic_target, check_target, new_store, progress
 from ._memory import DONE_KEY, SUCCESS_KEY, TAGS, column, has_key, open_memory, root_attrs, write_order
+from .errors import CLIError
 from .transitions import cast_float64
 
 __all__ = ["export_minari", "import_minari", "open_minari"]

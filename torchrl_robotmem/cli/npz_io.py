@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from . import CLIError
 from ._archive import READ_ERRORS, as_count, check_fits, inspect_npz, read_member
 from ._build import atomic_target, check_target, new_store, progress
 from ._memory import TAGS, column, open_memory, root_attrs, write_order
+from .errors import CLIError
 from .plain_npz import import_plain_npz
 from .transitions import cast_float64
 

@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from . import CLIError
 from ._archive import check_fits, inspect_npz, read_member
+from .errors import CLIError
 from .transitions import cast_float64, episode_flags, success_from_env, write_transitions
 
 __all__ = ["PLAIN_KEYS", "import_plain_npz", "plain_columns"]

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from . import CLIError
 from ._memory import DONE_KEY, SUCCESS_KEY, flat_column, goal_key, has_key, open_memory, partial_path
+from .errors import CLIError
 
 __all__ = ["plot_memory", "memory_figures", "add_arguments", "rolling_success", "success_window", "run"]
 

@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from . import CLIError
 from ._build import check_target
+from .errors import CLIError
 from .transitions import cast_float64, episode_flags, success_from_env, write_transitions
 
 __all__ = ["PICKLE_REFUSAL", "import_sb3", "load_sb3_buffer", "sb3_columns"]

@@ -38,7 +38,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from . import CLIError
+from .errors import CLIError
 from .minari_io import export_minari, import_minari
 from .npz_io import export_npz, import_npz
 from .sb3_io import import_sb3

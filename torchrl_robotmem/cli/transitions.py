@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from . import CLIError
 from ._build import new_store, progress
+from .errors import CLIError
 
 __all__ = ["cast_float64", "episode_flags", "success_from_env", "write_transitions"]
 

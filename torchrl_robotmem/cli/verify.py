@@ -35,7 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from . import CLIError
+from .errors import CLIError
 
 __all__ = ["HELP", "add_arguments", "run"]
 

@@ -39,6 +39,7 @@ from .tags import TAG_KEYS
 from .zarr_storage import ZarrCheckpointer, ZarrStorage, component_group, flush_before_close
 
 __all__ = [
-    "TAG_KEYS", "ZarrCheckpointer", "ZarrStorage", "component_group", "flush_before_close", "is_url", "key_to_path", "make_compressors", "normalize_path", "path_to_key",
-    "refuse_links", "store_exists", "store_size_bytes", "torch_dtype",
+    "TAG_KEYS", "ZarrCheckpointer", "ZarrStorage", "component_group", "flush_before_close", "is_url", "key_to_path",
+    "make_compressors", "normalize_path", "path_to_key", "refuse_links", "store_exists", "store_size_bytes",
+    "torch_dtype",
 ]

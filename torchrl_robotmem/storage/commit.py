@@ -543,6 +543,10 @@ def write_chunks(array: Any, payload: dict[int, dict[str, np.ndarray]], rows: in
             writes.append(array(prefix + path)._async_array.setitem(slice(lo, lo + len(values)), values))
 
     async def _all():
-        await asyncio.gather(*writes)
+        # every write ends before the first error is raised: none may still write a file once the caller handles it
+        results = await asyncio.gather(*writes, return_exceptions=True)
+        for result in results:
+            if isinstance(result, BaseException):
+                raise result
 
     zarr_sync(_all())
