@@ -52,7 +52,6 @@ CONTINUES = "# continues the block above"
 #: (page, index of a chain's first block) -> (why it fails today, the error it raises): a strict xfail on that
 #: chain alone, for that error alone; the page's fix makes it pass, and the entry must go with it
 KNOWN_FAILING = {
-    ("samplers.md", 1): ("fixed with issue 40's samplers.md update", NameError),  # tempfile, torch, ... undefined
 }
 
 
