@@ -49,7 +49,7 @@ def goal_conditioned(path, **kwargs) -> bool:
     """What a handle on ``path`` (read-only unless ``kwargs`` say otherwise) holds the rows to be."""
     storage = ZarrStorage(str(path), **{"read_only": True, **kwargs})
     try:
-        return storage._store.goal_conditioned
+        return storage.goal_conditioned
     finally:
         storage.close()
 
@@ -105,7 +105,7 @@ def test_a_reader_given_the_flag_writes_nothing(tmp_path):
     write(path, max_size=100, env="HalfCheetah-2x3")
     before = (path / "zarr.json").read_bytes()
     reader = ZarrStorage(str(path), read_only=True, goal_conditioned=False)
-    assert reader._store.goal_conditioned is False
+    assert reader.goal_conditioned is False
     reader.close()
     assert (path / "zarr.json").read_bytes() == before
 
@@ -117,7 +117,7 @@ def test_stores_older_than_the_flag_open_as_goal_conditioned(tarball, tmp_path):
     path = tmp_path / "memory"
     assert "goal_conditioned" not in recorded(path)
     storage = ZarrStorage(str(path), env="FetchPush-v4")  # writable, nothing said: nothing recorded
-    assert storage._store.goal_conditioned is True
+    assert storage.goal_conditioned is True
     storage.close()
     assert "goal_conditioned" not in recorded(path)
     storage = ZarrStorage(str(path), goal_conditioned=False)
@@ -132,7 +132,7 @@ def test_built_by_hydra_from_plain_values(tmp_path):
     cfg = {"_target_": "torchrl_robotmem.ZarrStorage", "path": str(tmp_path / "m.zarr"), "max_size": 100,
            "env": "HalfCheetah-2x3", "goal_conditioned": False}
     storage = instantiate(cfg)
-    assert storage._store.goal_conditioned is False
+    assert storage.goal_conditioned is False
     storage.close()
     assert recorded(tmp_path / "m.zarr")["goal_conditioned"] is False
 

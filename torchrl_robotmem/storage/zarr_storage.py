@@ -166,6 +166,11 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         return tuple(self._tags.env_names)
 
     @property
+    def goal_conditioned(self) -> bool:
+        """Whether the rows are goal-conditioned (``False``: no success-flag advice; recorded in the store)."""
+        return bool(self._store.goal_conditioned)
+
+    @property
     def env(self) -> str | None:
         """The environment name rows written from now on are tagged with."""
         return self._tags.env
