@@ -5,7 +5,7 @@
 two runs) written by different zarr releases: 3.1 (what CI installs) and 3.4
 (the newest the index serves for Python 3.12). Every fixture is checked under
 the zarr this suite runs with, so CI covers 3.4 -> 3.1 and the Python 3.12 run
-(README, "Supported versions") covers 3.1 -> 3.4.
+(docs/install.md, "Supported versions") covers 3.1 -> 3.4.
 """
 from __future__ import annotations
 
