@@ -2,7 +2,7 @@
 
 ``PrioritizedSampler`` keeps its sum/min trees in ``torchrl._torchrl``, a C++
 extension built against one torch release: torchrl 0.14.1's loads with torch
-2.14 and not with 2.10 to 2.13 (README, "Supported versions"; the CPU torch
+2.14 and not with 2.10 to 2.13 (docs/install.md, "Supported versions"; the CPU torch
 2.13.0 that CI installs is one of those), so these tests skip there and run
 in the Python 3.12 suite (torch 2.14.1).
 """
