@@ -42,7 +42,7 @@ demo: install-demo
 # workers on two cores take ~0.8x the wall time of one. PYTEST_ARGS="-n 0": serial.
 PYTEST_ARGS ?= -n 2 --durations=25
 test: install
-	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools
+	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools experiments
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 # everything, the tests marked `full` too (second tests of capabilities the default tier covers: about
@@ -51,7 +51,7 @@ test-full: install
 	ROBOTMEM_FULL=1 $(MAKE) --no-print-directory test
 
 lint: install
-	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools
+	$(VENV)/bin/ruff check torchrl_robotmem tests benchmarks examples recipes tools experiments
 
 bench: install
 	$(PY) benchmarks/bench_storage.py

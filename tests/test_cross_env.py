@@ -1,4 +1,4 @@
-"""recipes/cross_env: statistics, and the experiment command end to end on 2 episodes per arm."""
+"""experiments/cross_env: statistics, and the experiment command end to end on 2 episodes per arm."""
 from __future__ import annotations
 
 import json
@@ -13,8 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 
-from recipes.cross_env import run  # noqa: E402
-from recipes.cross_env.stats import mcnemar, wilson  # noqa: E402
+from experiments.cross_env import run  # noqa: E402
+from recipes.her.tools.stats import mcnemar, wilson  # noqa: E402
 
 torch.set_num_threads(1)
 
@@ -43,13 +43,13 @@ def test_a_killed_memory_build_never_leaves_a_memory_behind(tmp_path):
     import subprocess
     import time
 
-    from recipes.scripted.controllers import StrikeParams
+    from experiments.scripted.controllers import StrikeParams
     from torchrl_robotmem import ZarrStorage
 
     path = tmp_path / "seed0.zarr"
     building = Path(str(path) + ".building")
-    code = ("import sys; sys.path.insert(0, sys.argv[1]); from recipes.cross_env.run import build_memory;"
-            "from recipes.scripted.controllers import StrikeParams;"
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); from experiments.cross_env.run import build_memory;"
+            "from experiments.scripted.controllers import StrikeParams;"
             "build_memory(sys.argv[2], 0, 10**6, 1, StrikeParams())")  # never finishes: killed mid-build
     proc = subprocess.Popen([sys.executable, "-c", code, str(ROOT), str(path)])
     try:

@@ -234,7 +234,7 @@ def test_cuda_recipe_trains_and_resumes(tmp_path, algo):
 
 def test_cuda_recipe_with_a_prior_memory_clone_and_anchor(tmp_path):
     """prior.paths + clone_steps + bc + clone_anchor (recipes/her/prior_memory) with the actor on the GPU."""
-    from recipes.scripted.collect import main as collect
+    from experiments.scripted.collect import main as collect
 
     prior = tmp_path / "scripted-push.zarr"
     collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0"])

@@ -1,4 +1,4 @@
-"""recipes.her.tools.hand_memory (issue 27): coverage by exact recall and hindsight clones, on a real HandReach memory.
+"""experiments.her.hand_memory (issue 27): coverage by exact recall and hindsight clones, on a real HandReach memory.
 
 Real parts: two random HandReach-v3 episodes from the library's TorchRL env, written to a
 real ZarrStorage (episodes delimited by its done flags only), the tool run on it.
@@ -15,7 +15,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from recipes.her.tools import hand_memory  # noqa: E402
+from experiments.her import hand_memory  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -207,8 +207,8 @@ def test_recall_from_another_memory_read_only(tmp_path):
     """memory.recall.memory=<path>: the envs recall the prior memory's successful goals, not the run's own."""
     from hydra import compose, initialize_config_dir
 
+    from experiments.scripted.collect import collect
     from recipes.her.utils import make_task_env
-    from recipes.scripted.collect import collect
     from torchrl_robotmem import ZarrStorage, recall
 
     prior = tmp_path / "scripted.zarr"
@@ -301,7 +301,7 @@ def _saved_normalizer(agent: Path, overrides: list[str]):
 @pytest.mark.full
 def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     """prior.paths: a scripted FetchPush memory, read-only, half of every batch (issue 9)."""
-    from recipes.scripted.collect import main as collect
+    from experiments.scripted.collect import main as collect
     from torchrl_robotmem import ZarrStorage
 
     prior = tmp_path / "scripted-push.zarr"
@@ -328,8 +328,8 @@ def test_prior_memory_is_sampled_beside_the_runs_own(tmp_path):
     logged = next((tmp_path / "out" / "her_logging").glob("*/scalars/train/prior_ratio.csv")).read_text()
     ratios = [round(float(line.split(",")[1]), 6) for line in logged.splitlines() if line[:1].isdigit()]
     assert ratios == [0.3, 0.1]  # annealed from 0.5: after 25 and 50 of 50 frames
-    # recipes.her.tools.failures replays the run's evaluation from its saved agent and sorts the failures
-    from recipes.her.tools.failures import failures
+    # experiments.her.failures replays the run's evaluation from its saved agent and sorts the failures
+    from experiments.her.failures import failures
 
     f = failures(str(tmp_path / "own.zarr-agent"),
                  ["env=pick_and_place", "network.hidden_sizes=[16,16]", "logger.eval_episodes=3"])
@@ -463,7 +463,7 @@ def test_clone_anchor_weight_schedule():
 
 
 def test_prior_runs_queue_lists_resumable_commands(tmp_path, capsys):
-    from recipes.her.tools import prior_runs
+    from experiments.her import prior_runs
 
     assert {"prior-push-s2", "scratch-push-s2", "pushprior-pnp-s0", "ownprior-pnp-s2", "scratch-pnp-s1"} <= set(prior_runs.RUNS)
     cmd = prior_runs.command("anneal-push-s1", str(tmp_path))
@@ -482,8 +482,8 @@ def _push_loss_and_scripted_batch(tmp_path: Path, algo: str):
     """A fresh FetchPush loss module of ``algo`` (32x32 networks) and 64 rows of a 2-episode scripted memory."""
     from hydra import compose, initialize_config_dir
 
+    from experiments.scripted.collect import main as collect
     from recipes.her import utils
-    from recipes.scripted.collect import main as collect
     from torchrl_robotmem import ZarrStorage
 
     torch.manual_seed(0)
@@ -635,9 +635,9 @@ def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
     from hydra import compose, initialize_config_dir
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+    from experiments.scripted.collect import main as collect
     from recipes.her import utils
     from recipes.her.prior_memory import pretrain_actor
-    from recipes.scripted.collect import main as collect
     from torchrl_robotmem import ZarrStorage
 
     torch.manual_seed(0)
@@ -676,9 +676,9 @@ def test_pretrain_actor_clones_the_successful_prior_episodes(tmp_path, algo):
 
 
 def test_clone_sensitivity_reports_success_against_weight_noise(tmp_path):
-    """recipes.her.tools.clone_sensitivity: clones a scripted memory, perturbs the weights, evaluates, plots."""
-    from recipes.her.tools.clone_sensitivity import main, sensitivity
-    from recipes.scripted.collect import main as collect
+    """experiments.her.clone_sensitivity: clones a scripted memory, perturbs the weights, evaluates, plots."""
+    from experiments.her.clone_sensitivity import main, sensitivity
+    from experiments.scripted.collect import main as collect
 
     prior = tmp_path / "scripted-push.zarr"
     collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0", "noise=0"])
@@ -735,8 +735,8 @@ def test_an_agent_checkpoint_a_kill_caught_mid_save_is_put_back(tmp_path):
 def test_the_same_seed_gives_the_same_run(tmp_path):
     """Two runs of one command (a prior memory, pretraining, HER, evaluation) end bit-identical: every
     tensor of the agent checkpoint, every logged loss, every evaluation episode."""
+    from experiments.scripted.collect import main as collect
     from recipes.her.run_record import read_episodes
-    from recipes.scripted.collect import main as collect
 
     prior = tmp_path / "prior.zarr"
     collect([f"path={prior}", "env=push", "episodes=2", "backend=gym", "seed=0"])

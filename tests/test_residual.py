@@ -1,4 +1,4 @@
-"""recipes/residual: the scripted controller inside the env, the residual policy, the recipe end to end.
+"""experiments/residual: the scripted controller inside the env, the residual policy, the recipe end to end.
 
 Real FetchPush envs, a real scripted memory and the recipe as a subprocess."""
 from __future__ import annotations
@@ -16,9 +16,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 
-from recipes.residual.base import ScriptedBase, recalled_params  # noqa: E402
-from recipes.scripted.collect import collect  # noqa: E402
-from recipes.scripted.controllers import ScriptedPolicy  # noqa: E402
+from experiments.residual.base import ScriptedBase, recalled_params  # noqa: E402
+from experiments.scripted.collect import collect  # noqa: E402
+from experiments.scripted.controllers import ScriptedPolicy  # noqa: E402
 from torchrl_robotmem import ZarrStorage, make_env  # noqa: E402
 
 
@@ -113,7 +113,7 @@ def test_recipe_starts_as_the_recalled_controller_and_keeps_its_transitions(tmp_
     collect("push", 6, memory, noise=1.0, seed=0)
     run = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "recipes.residual.train", f"base.memory={memory}", "collector.total_frames=200",
+        [sys.executable, "-m", "experiments.residual.train", f"base.memory={memory}", "collector.total_frames=200",
          "collector.warmup_frames=100", "collector.actor_freeze_frames=150", "optim.batch_size=8",
          "network.hidden_sizes=[16,16]", "logger.eval_iter=100", "logger.eval_episodes=2",
          f"algo.actor_update={actor_update}",
@@ -141,23 +141,23 @@ def test_recipe_refuses_a_memory_that_already_holds_transitions(tmp_path):
     st.set(torch.arange(1), TensorDict({"x": torch.zeros(1, 1), "next": {"is_success": torch.zeros(1)}}, [1]))
     st.close()
     proc = subprocess.run(
-        [sys.executable, "-m", "recipes.residual.train", f"memory.path={path}", f"hydra.run.dir={tmp_path / 'r'}"],
+        [sys.executable, "-m", "experiments.residual.train", f"memory.path={path}", f"hydra.run.dir={tmp_path / 'r'}"],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "already holds 1 transitions" in proc.stderr
     bad = tmp_path / "bad.zarr"
     proc = subprocess.run(
-        [sys.executable, "-m", "recipes.residual.train", "algo.actor_update=ppo", f"memory.path={bad}",
+        [sys.executable, "-m", "experiments.residual.train", "algo.actor_update=ppo", f"memory.path={bad}",
          f"hydra.run.dir={tmp_path / 'b'}"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0 and "algo.actor_update must be sac or crr" in proc.stderr and not bad.exists()
 
 
 def test_improve_grows_the_memory_and_starts_as_the_recalled_controller(tmp_path):
-    """recipes.scripted.improve: the prior is copied, never written; new episodes join the run's memory with their
+    """experiments.scripted.improve: the prior is copied, never written; new episodes join the run's memory with their
     (explored) parameters; the first evaluation is the controller recalled from the prior."""
-    from recipes.scripted.controllers import default_params
-    from recipes.scripted.improve import improve
-    from recipes.scripted.recall_params import STRIKE_RECALLED
+    from experiments.scripted.controllers import default_params
+    from experiments.scripted.improve import improve
+    from experiments.scripted.recall_params import STRIKE_RECALLED
 
     prior = str(tmp_path / "prior.zarr")
     collect("push", 6, prior, noise=1.0, seed=0)

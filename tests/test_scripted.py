@@ -1,4 +1,4 @@
-"""Smoke tests of recipes/scripted: controllers on the real MuJoCo envs, memories, recall."""
+"""Smoke tests of experiments/scripted: controllers on the real MuJoCo envs, memories, recall."""
 from __future__ import annotations
 
 import dataclasses
@@ -14,9 +14,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 
-from recipes.scripted.collect import collect, main, noisy_params, open_memory  # noqa: E402
-from recipes.scripted.controllers import TASKS, ScriptedPolicy, default_params, param_names  # noqa: E402
-from recipes.scripted.recall_params import episode_index, mean_params, recall_episodes  # noqa: E402
+from experiments.scripted.collect import collect, main, noisy_params, open_memory  # noqa: E402
+from experiments.scripted.controllers import TASKS, ScriptedPolicy, default_params, param_names  # noqa: E402
+from experiments.scripted.recall_params import episode_index, mean_params, recall_episodes  # noqa: E402
 from torchrl_robotmem import make_env  # noqa: E402
 
 torch.set_num_threads(1)

@@ -137,7 +137,7 @@ fi
 #   CPU track: d2 (open 1M rows), d (8 env workers vs 1), b (tests, GPU too), p1 (push with a prior, seed 1)
 # Tests (and their short GPU processes) run only once the CPU stages are done; the CPU stages overlap the
 # GPU track's benchmark, whose ours-vs-TorchRL ratios are same-run. Each track appends to its own files.
-PRIOR=$ROOT/bench_results/prior/scripted-push-500.zarr  # carried: recipes.scripted.collect env=push episodes=500 noise=1 seed=0
+PRIOR=$ROOT/bench_results/prior/scripted-push-500.zarr  # carried: experiments.scripted.collect env=push episodes=500 noise=1 seed=0
 # p SEED FILE CAP: the docs/results.md FetchPush setting (prior=mix, SAC+HER, 60k frames) on the device, as far as the
 # time left allows: collector.cpu_budget_s stops it gracefully (summary written) about 80 s before the stage's cap
 prior_run() {

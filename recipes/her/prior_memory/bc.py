@@ -21,7 +21,7 @@ stored actions the critics prefer instead of following their action gradient;
 ``prior.clone_steps=N`` (:func:`pretrain_actor`) clones the prior's successful
 episodes into the actor before the first update.
 
-The scripted controllers behind ``recipes/scripted`` reach the goal precisely
+The scripted controllers behind ``experiments/scripted`` reach the goal precisely
 (FetchPush at default parameters: 96.6%), which is what SAC+HER alone plateaus
 short of (near misses at 5-10 cm, docs/notes/results_log.md section 9).
 """
@@ -143,7 +143,7 @@ def pretrain_actor(
     error, actions clipped to the action box) over the prior rows with their
     **original** goals (no relabelling: the stored action was aimed at that goal).
     ``success_only`` keeps the episodes whose ``episode_success`` (written by
-    ``recipes.scripted``) is set, where the memory records it. A separate Adam
+    ``experiments.scripted``) is set, where the memory records it. A separate Adam
     is used, so the run's optimiser state is untouched.
 
     Args:

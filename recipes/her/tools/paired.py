@@ -4,7 +4,7 @@ Runs with the same ``seed`` are evaluated on the same fixed goals, and each run
 records every evaluation's per-episode successes in its hydra directory
 (``eval_episodes.jsonl``, :func:`recipes.her.run_record.record_episodes`). This
 tool pairs the two arms' runs by seed, pairs their episodes by goal, and runs
-an exact McNemar test on all the pairs (:func:`recipes.cross_env.stats.mcnemar`):
+an exact McNemar test on all the pairs (:func:`recipes.her.tools.stats.mcnemar`):
 the test of issue 27's recall ablations (``memory.recall.enabled``,
 ``replay_buffer.sampler.enabled``) against the same runs without them::
 
@@ -13,7 +13,7 @@ the test of issue 27's recall ablations (``memory.recall.enabled``,
         "control=runs/prior-s0,runs/prior-s1,runs/prior-s2"
 
 An arm's label may end in ``@FRAMES`` to read that arm at another evaluation,
-e.g. a run against its own first evaluation (``recipes/residual``: the learned
+e.g. a run against its own first evaluation (``experiments/residual``: the learned
 residual at 30k frames against the controller it started from)::
 
     python -m recipes.her.tools.paired --frames 30000 "residual=A-s0,A-s1" "controller@0=A-s0,A-s1"
@@ -28,8 +28,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from recipes.cross_env.stats import mcnemar, wilson
 from recipes.her.run_record import read_episodes
+from recipes.her.tools.stats import mcnemar, wilson
 
 __all__ = ["arm_outcomes", "compare_arms", "main", "parse_arm"]
 

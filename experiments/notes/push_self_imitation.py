@@ -1,7 +1,7 @@
 """Probe (issue 27, goal 2): clone the noisy FetchPush memory, then clone-collect-clone rounds.
 
 Self-imitation by filtered cloning (GCSL / filtered BC without a critic): an MLP
-``a = pi(o, g)`` (``recipes.her.tools.hand_memory.InverseModel``) is regressed
+``a = pi(o, g)`` (``experiments.her.hand_memory.InverseModel``) is regressed
 onto the actions of the memory's episodes that ended within ``--threshold`` of
 their goal (0.05: FetchPush's own success radius), evaluated on 100
 deterministic episodes (reset seeds 10000-10099), then each round collects 100
@@ -9,12 +9,12 @@ episodes with the clone plus N(0, sigma^2) action noise, adds the ones that
 succeeded (``--mode relabel``: also the failed ones whose block moved > 5 cm,
 their goal replaced by where the block ended) and fits on.
 
-    python docs/notes/push_self_imitation.py --mode success --rounds 6     # 0.52, 0.58, 0.45 ... (results.md)
-    python docs/notes/push_self_imitation.py --rounds 0 --threshold 0.03   # a tighter filter: fewer episodes
-    python docs/notes/push_self_imitation.py --rounds 0 --steps 4000 --shift 0.1   # rows shifted on the table
+    python -m experiments.notes.push_self_imitation --mode success --rounds 6     # 0.52, 0.58, 0.45 ... (results.md)
+    python -m experiments.notes.push_self_imitation --rounds 0 --threshold 0.03   # a tighter filter: fewer episodes
+    python -m experiments.notes.push_self_imitation --rounds 0 --steps 4000 --shift 0.1   # rows shifted on the table
 
 Needs ``bench_results/prior/scripted-push-500.zarr``
-(``python -m recipes.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym path=...``).
+(``python -m experiments.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym path=...``).
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from recipes.her.tools.hand_memory import InverseModel, fit  # noqa: E402
+from experiments.her.hand_memory import InverseModel, fit  # noqa: E402
 from torchrl_robotmem import ZarrStorage  # noqa: E402
 
 STEPS = 50

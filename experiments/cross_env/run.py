@@ -4,15 +4,15 @@ One command builds the memories, runs every arm on the same FetchSlide episodes
 (paired by env seed), and writes ``results.json``, ``report.md`` and
 ``cross_env.png`` to ``--out``:
 
-    python -m recipes.cross_env.run                       # the pre-registered experiment (docs/cross_env.md)
-    python -m recipes.cross_env.run seeds=1 episodes=2 push_episodes=2 slide_episodes=2 \
-        tune_episodes=2 speeds=0.8 out=/tmp/cross_env     # smoke run
-    python -m recipes.cross_env.run learned_only=true learned_frames=60000 learned_jobs=2  # the learned arm alone, resumable
-    python -m recipes.cross_env.run learned_only=true learned_frames=60000 learned_arms=clone  # ... its clone runs
+    python -m experiments.cross_env.run                   # the pre-registered experiment (docs/cross_env.md)
+    python -m experiments.cross_env.run seeds=1 episodes=2 push_episodes=2 slide_episodes=2 \
+        tune_episodes=2 speeds=0.8 out=/tmp/cross_env # smoke run
+    python -m experiments.cross_env.run learned_only=true learned_frames=60000 learned_jobs=2  # the learned arm alone, resumable
+    python -m experiments.cross_env.run learned_only=true learned_frames=60000 learned_arms=clone  # ... its clone runs
 
 Per seed (replicate) ``s`` one memory (a :class:`~torchrl_robotmem.ZarrStorage`)
 holds ``push_episodes`` noisy scripted FetchPush episodes and ``slide_episodes``
-noisy FetchSlide episodes (``recipes.scripted.collect``); every arm then runs the
+noisy FetchSlide episodes (``experiments.scripted.collect``); every arm then runs the
 same ``episodes`` FetchSlide env seeds. What the memory may change, the key it
 is searched by, ``k`` and the filters are fixed in :data:`PREREGISTERED`.
 """
@@ -33,12 +33,12 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from recipes.scripted.collect import DISTANCE_SCALE, collect, episode_geometry, gym_episodes, kv_args, open_memory
-from recipes.scripted.controllers import StrikeParams, default_params
-from recipes.scripted.recall_params import SUCCESS_KEY, episode_index, mean_params, recall_episodes
+from experiments.scripted.collect import DISTANCE_SCALE, collect, episode_geometry, gym_episodes, kv_args, open_memory
+from experiments.scripted.controllers import StrikeParams, default_params
+from experiments.scripted.recall_params import SUCCESS_KEY, episode_index, mean_params, recall_episodes
+from recipes.her.tools.stats import mcnemar, wilson
 
-from .stats import mcnemar, wilson
-
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository
 PUSH, SLIDE = "FetchPush-v4", "FetchSlide-v4"
 
 #: Fixed before the main run (docs/cross_env.md, "Pre-registration").
@@ -205,7 +205,7 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str,
     if frames <= 0 or memory is None:
         return {"status": "not run",
                 "reason": "learned_frames=0; set learned_frames=N (about 75 CPU-ms a frame here) to run it"}
-    train = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "her", "train.py")
+    train = os.path.join(ROOT, "recipes", "her", "train.py")
     if jobs < 1:
         raise ValueError(f"learned_jobs must be >= 1, got {jobs}")
     unknown = [a for a in arms if a not in LEARNED_ARMS]
@@ -405,7 +405,7 @@ def _learned_arms(args: argparse.Namespace) -> tuple[str, ...]:
 
 
 def _parse(argv):
-    p = argparse.ArgumentParser(prog="python -m recipes.cross_env.run", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m experiments.cross_env.run", description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=5, help="replicates (a memory and an eval set each)")
     p.add_argument("--episodes", type=int, default=200, help="FetchSlide episodes per arm and seed")
     p.add_argument("--push_episodes", type=int, default=500)

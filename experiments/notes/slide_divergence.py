@@ -1,7 +1,7 @@
 """The critic loss and actor Q of the three FetchSlide prior runs without target clipping (docs/results.md).
 
-    python docs/notes/slide_divergence.py bench_results/i27/links/slide100k-prior-s{0,1,2}   # from the runs
-    python docs/notes/slide_divergence.py                                                   # from the archive
+    python -m experiments.notes.slide_divergence bench_results/i27/links/slide100k-prior-s{0,1,2}   # from the runs
+    python -m experiments.notes.slide_divergence                                                   # from the archive
 
 Reads each run's ``train/loss_qvalue.csv`` and ``train/loss_actor.csv`` (every CSV its resumes logged), keeps a
 point every 1000 frames in ``docs/runs/slide100k-prior-losses.json``, and draws ``docs/img/slide_divergence.png``.

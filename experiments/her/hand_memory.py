@@ -14,15 +14,15 @@ Three measurements on the memory a ``recipes/her/train.py env=hand_reach`` run w
 
 ::
 
-    python -m recipes.her.tools.hand_memory cover bench_results/i27/hand_reach-s1.zarr
-    python -m recipes.her.tools.hand_memory clone bench_results/i27/hand_reach-s1.zarr --horizon 1 3 10
-    python -m recipes.her.tools.hand_memory gcsl bench_results/i27/hand_reach-s1.zarr --horizon 3 --rounds 5
+    python -m experiments.her.hand_memory cover bench_results/i27/hand_reach-s1.zarr
+    python -m experiments.her.hand_memory clone bench_results/i27/hand_reach-s1.zarr --horizon 1 3 10
+    python -m experiments.her.hand_memory gcsl bench_results/i27/hand_reach-s1.zarr --horizon 3 --rounds 5
 
 Each result is printed as one JSON line (and appended to ``--out``). ``plot`` draws the runs'
 evaluation curves (``--runs NAME=RUN``: a run's hydra dir, or the JSON ``compare --archive`` wrote for it)
 and the clone / gcsl lines of the result files, placed at the frames of the memory they came from::
 
-    python -m recipes.her.tools.hand_memory plot docs/runs/hand_memory.jsonl \
+    python -m experiments.her.hand_memory plot docs/runs/hand_memory.jsonl \
         --runs "SAC s0=docs/runs/hand_reach-s0-out.json" "SAC s1=docs/runs/hand_reach-s1-out.json" \
         --png docs/img/hand_reach.png
 """

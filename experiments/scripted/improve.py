@@ -6,7 +6,7 @@ This loop lets that memory learn from trial and error, as episodic control does:
 
 1. the prior memory's rows are copied into the run's own memory (the prior is only read);
 2. each training episode recalls its parameters, perturbs the recalled ones with
-   ``noise`` times the spreads of :data:`~recipes.scripted.collect.NOISE`, runs, and is
+   ``noise`` times the spreads of :data:`~experiments.scripted.collect.NOISE`, runs, and is
    written to the run's memory with its parameters and outcome: a success joins what
    later episodes recall, a failure is kept but never recalled;
 3. every ``eval_every`` frames the controller is evaluated without noise, on the fixed goals
@@ -17,7 +17,7 @@ This loop lets that memory learn from trial and error, as episodic control does:
 The reward is the episode's success; the policy is the memory. Issue 27, goal 2
 (docs/results.md): FetchPush from the noisy memory (66.8%) to >= 0.95 within 30k frames::
 
-    python -m recipes.scripted.improve env=push seed=0 prior=bench_results/prior/scripted-push-500.zarr \\
+    python -m experiments.scripted.improve env=push seed=0 prior=bench_results/prior/scripted-push-500.zarr \\
         path=runs/improve-s0.zarr out=runs/improve-s0 frames=30000
 """
 from __future__ import annotations
@@ -68,7 +68,7 @@ def improve(task: str, prior: str, path: str, out: str, *, frames: int = 30_000,
         out (str): where ``summary.json`` and ``eval_episodes.jsonl`` go.
         frames (int): env frames of training episodes (50 an episode).
         seed (int): seeds the exploration noise, the training episodes' resets and the evaluation goals.
-        noise (float): exploration, times :data:`~recipes.scripted.collect.NOISE`, on the recalled parameters.
+        noise (float): exploration, times :data:`~experiments.scripted.collect.NOISE`, on the recalled parameters.
         k (int): successful episodes recalled per episode.
         eval_every (int): frames between evaluations.
         eval_episodes (int): episodes of an evaluation.
@@ -135,7 +135,7 @@ def improve(task: str, prior: str, path: str, out: str, *, frames: int = 30_000,
 
 def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
-    parser = argparse.ArgumentParser(prog="python -m recipes.scripted.improve", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.scripted.improve", description=__doc__.split("\n")[0])
     parser.add_argument("--env", default="push", help="push | slide (or a Fetch id)")
     parser.add_argument("--prior", required=True, help="the scripted memory to start from (read-only)")
     parser.add_argument("--path", required=True, help="the run's own memory (new)")

@@ -7,7 +7,7 @@ the 5 successful episodes nearest in goal geometry gives a controller that score
 controller and learns a residual on it with SAC, the loop of TorchRL's
 ``sota-implementations/sac/sac.py``:
 
-* the env runs the controller (:class:`~recipes.residual.base.ScriptedBase`) and
+* the env runs the controller (:class:`~experiments.residual.base.ScriptedBase`) and
   writes its action and phase as observations, at the root and under ``"next"``;
 * the actor's mean is the controller's action plus a learned residual that starts
   at zero (``agent.py``), so the first evaluation is the controller's;
@@ -20,7 +20,7 @@ controller and learns a residual on it with SAC, the loop of TorchRL's
 No HER: the controller already reaches the goal on most episodes, and a relabelled
 goal would need the controller's state for that goal, which the transition does not hold.
 
-    python -m recipes.residual.train seed=0 base.memory=bench_results/prior/scripted-push-500.zarr
+    python -m experiments.residual.train seed=0 base.memory=bench_results/prior/scripted-push-500.zarr
 """
 from __future__ import annotations
 
@@ -39,10 +39,10 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from experiments.residual.agent import AGENT_INPUTS, make_agent, make_loss, make_optimizers
 from recipes.her.prior_memory.bc import CRRActorLoss
 from recipes.her.run_record import CpuClock, first_reach, record_episodes
 from recipes.her.utils import GoalNormalizer, evaluate, make_logger, make_storage, mean_losses
-from recipes.residual.agent import AGENT_INPUTS, make_agent, make_loss, make_optimizers
 from torchrl_robotmem import make_env
 
 # actor outputs not worth keeping in the memory

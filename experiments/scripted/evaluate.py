@@ -1,7 +1,7 @@
 """Success rates of the scripted controllers (default and noisy parameters), with 95% Wilson CIs.
 
-    python -m recipes.scripted.evaluate                      # 200 episodes per task and noise level
-    python -m recipes.scripted.evaluate episodes=50 tasks=push noises=0,1
+    python -m experiments.scripted.evaluate                  # 200 episodes per task and noise level
+    python -m experiments.scripted.evaluate episodes=50 tasks=push noises=0,1
 
 Episodes run on a bare gymnasium env (``gym_episodes``), reset with seeds
 500000 + i, nothing is written. Success: the env's ``is_success`` at the last step.
@@ -28,13 +28,13 @@ def success_rate(task: str, noise: float, episodes: int, seed: int = 0) -> tuple
 
 def main(argv: list[str] | None = None) -> list[dict]:
     torch.set_num_threads(1)
-    p = argparse.ArgumentParser(prog="python -m recipes.scripted.evaluate")
+    p = argparse.ArgumentParser(prog="python -m experiments.scripted.evaluate")
     p.add_argument("--episodes", type=int, default=200)
     p.add_argument("--tasks", default=",".join(TASKS))
     p.add_argument("--noises", default="0,1")
     argv = sys.argv[1:] if argv is None else argv
     args = p.parse_args(kv_args(argv))
-    from recipes.cross_env.stats import wilson  # the one home of the statistics
+    from recipes.her.tools.stats import wilson  # the one home of the statistics
 
     rows = []
     print("| task | noise | success | 95% CI |\n|---|---|---|---|")

@@ -22,7 +22,7 @@ GEOMETRY_KEY = ("geometry", "scaled_distance")
 #: success column: the episode's outcome, on every one of its rows
 SUCCESS_KEY = "episode_success"
 #: what recall supplies to the push / slide controller (how to strike); where the stroke ends stays at the
-#: task's default: the names of ``recipes.cross_env.run.PREREGISTERED["supplied"]``
+#: task's default: the names of ``experiments.cross_env.run.PREREGISTERED["supplied"]``
 STRIKE_RECALLED = ("approach_offset", "approach_height", "strike_height", "aim_angle", "strike_speed")
 
 

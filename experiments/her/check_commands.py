@@ -3,7 +3,8 @@
 The redesign renamed the prior-memory options (``memory.prior*``, ``memory.clone_anchor*``,
 ``memory.freeze_normalizer``, ``memory.actor_freeze_frames``, ``optim.actor_update``,
 ``optim.actor_lr``: now the ``prior`` config group) and moved the tools to
-``python -m recipes.her.tools.*``. This check pairs each command of a doc before the
+``python -m recipes.her.tools.*`` (issue 42 moved those that reproduce past results
+to ``python -m experiments.her.*``). This check pairs each command of a doc before the
 change (``--docs-base``, a git revision) with the same command after it (the working
 tree), in the order they appear, and proves they are the same run:
 
@@ -18,8 +19,8 @@ tree), in the order they appear, and proves they are the same run:
 
 Run it from the repository root::
 
-    python -m recipes.her.tools.check_commands                  # every doc, prints one line a command
-    python -m recipes.her.tools.check_commands --docs-base 59b9ae5 README.md recipes/README.md
+    python -m experiments.her.check_commands                # every doc, prints one line a command
+    python -m experiments.her.check_commands --docs-base 59b9ae5 README.md recipes/README.md
 
 Commands are paired in order, each old one with the next new one of the same tool; a
 new command with no old one is only checked to be valid. It exits non-zero if a pair
@@ -44,7 +45,7 @@ from omegaconf import OmegaConf
 
 from recipes.her.prior_memory import check_prior_config
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 RECIPE_DIR = os.path.join(ROOT, "recipes", "her")
 RECIPE_BASE = "59b9ae5"  # the recipe before the redesign
 DOCS_BASE = "c658576"    # the docs before their commands were renamed (docs/results.md already split by issue 24)
@@ -75,7 +76,10 @@ RENAMED = {
 NEW_ONLY = {"num_threads": 1, "prior.name": None, "memory.pretrain_eval_every": None,
             "memory.pretrain_eval_episodes": None, "memory.pretrain_target": None, "memory.pretrain_patience": None}
 OLD_TOOLS = {"train.py", "prior_runs.py", "compare.py", "failures.py", "clone_sensitivity.py"}
-COMMAND = re.compile(r"(?:python3?|\$\(PY\)|\.venv/bin/python)\s+(?:-m\s+recipes\.her\.(?:tools\.)?(\w+)|recipes/her/(?:tools/)?(\w+)\.py)")
+COMMAND = re.compile(r"(?:python3?|\$\(PY\)|\.venv/bin/python)\s+"
+                     r"(?:-m\s+(?:recipes\.her\.(?:tools\.)?|experiments\.her\.)(\w+)|(?:recipes/her/(?:tools/)?|experiments/her/)(\w+)\.py)")
+#: where a tool's module lives now: the recipe's own tools, or the experiments' (issue 42)
+TOOL_PACKAGES = ("recipes.her.tools", "experiments.her")
 
 
 # -- commands in a doc ---------------------------------------------------------
@@ -193,6 +197,11 @@ def git_text(rev: str, path: str) -> str | None:
     return proc.stdout if proc.returncode == 0 else None
 
 
+def tool_exists(tool: str) -> bool:
+    """Whether ``python -m`` finds ``tool`` in one of :data:`TOOL_PACKAGES`."""
+    return any(importlib.util.find_spec(f"{package}.{tool}") is not None for package in TOOL_PACKAGES)
+
+
 def load_module(path: str, name: str):
     """A module from a file (the old ``prior_runs.py``), without touching ``sys.path``."""
     spec = importlib.util.spec_from_file_location(name, path)
@@ -208,7 +217,7 @@ class Checker:
     """Compares old and new commands; ``old_dir`` holds the recipe at ``RECIPE_BASE``."""
 
     def __init__(self, old_dir: str) -> None:
-        from recipes.her.tools import prior_runs
+        from experiments.her import prior_runs
 
         self.old_dir = old_dir
         self._seen: dict[tuple, list[str]] = {}  # (old, new) -> differences: docs repeat the same runs
@@ -256,7 +265,7 @@ class Checker:
             except Exception as err:  # any refusal (a bad key, prior.* that do not go together) is the finding
                 return [f"refused: {err}"]
             return []
-        return [] if importlib.util.find_spec(f"recipes.her.tools.{tool}") else [f"no module recipes.her.tools.{tool}"]
+        return [] if tool_exists(tool) else [f"no module {tool} in {' or '.join(TOOL_PACKAGES)}"]
 
     def pair(self, old: tuple[str, list[str]], new: tuple[str, list[str]] | None) -> list[str]:
         if new is None:
@@ -281,8 +290,8 @@ class Checker:
         if old_tool == "failures" and old_args[1:]:
             return (["failures: other agent"] if old_args[:1] != new_args[:1] else []) + self.same_run(
                 ["logger.eval_episodes=100", *old_args[1:]], ["logger.eval_episodes=100", *new_args[1:]])
-        if importlib.util.find_spec(f"recipes.her.tools.{new_tool}") is None:
-            return [f"no module recipes.her.tools.{new_tool}"]
+        if not tool_exists(new_tool):
+            return [f"no module {new_tool} in {' or '.join(TOOL_PACKAGES)}"]
         return [] if old_args == new_args else [f"other arguments: {old_args} vs {new_args}"]
 
 

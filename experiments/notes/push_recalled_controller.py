@@ -1,15 +1,15 @@
 """What the noisy FetchPush memory is worth to the controller that wrote it (issue 27, goal 2).
 
-Runs the scripted push controller (``recipes/scripted``) on FetchPush-v4 with, per
+Runs the scripted push controller (``experiments/scripted``) on FetchPush-v4 with, per
 episode, the mean parameters of the ``k`` successful memory episodes nearest in
-goal geometry (``recipes.scripted.recall_params``, the recall of
+goal geometry (``experiments.scripted.recall_params``, the recall of
 docs/cross_env.md), against the controller's default parameters, on the same
 env seeds (20,000,000 onward: disjoint from the memory's and the recipe's).
 
-    python docs/notes/push_recalled_controller.py --episodes 200 --k 5   # default 0.99, recalled 0.955 (results.md)
+    python -m experiments.notes.push_recalled_controller --episodes 200 --k 5   # default 0.99, recalled 0.955 (results.md)
 
 Needs ``bench_results/prior/scripted-push-500.zarr``
-(``python -m recipes.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym path=...``).
+(``python -m experiments.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym path=...``).
 """
 from __future__ import annotations
 
@@ -18,10 +18,10 @@ import json
 
 import numpy as np
 
-from recipes.cross_env.run import PREREGISTERED
-from recipes.scripted.collect import gym_episodes
-from recipes.scripted.controllers import default_params
-from recipes.scripted.recall_params import episode_index, recaller
+from experiments.cross_env.run import PREREGISTERED
+from experiments.scripted.collect import gym_episodes
+from experiments.scripted.controllers import default_params
+from experiments.scripted.recall_params import episode_index, recaller
 from torchrl_robotmem import ZarrStorage
 
 

@@ -19,8 +19,8 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import Transform
 
-from recipes.scripted.controllers import default_params, make_controller, task_of
-from recipes.scripted.recall_params import episode_index, recaller
+from experiments.scripted.controllers import default_params, make_controller, task_of
+from experiments.scripted.recall_params import episode_index, recaller
 from torchrl_robotmem import ZarrStorage
 
 __all__ = ["ScriptedBase", "recalled_params"]
@@ -42,7 +42,7 @@ def recalled_params(task: str, memory: str | None, k: int = 5) -> Callable[[np.n
     storage = ZarrStorage(memory, read_only=True)
     if len(storage) == 0:
         raise ValueError(f"the scripted memory {memory!r} is empty: collect one first "
-                         "(python -m recipes.scripted.collect env=push episodes=500 noise=1 path=...).")
+                         "(python -m experiments.scripted.collect env=push episodes=500 noise=1 path=...).")
     return recaller(task, episode_index(storage), k)
 
 
@@ -51,7 +51,7 @@ class ScriptedBase(Transform):
 
     Args:
         task (str): ``"push"``, ``"slide"`` (or their Fetch ids).
-        memory (str, optional): a scripted memory (``recipes.scripted.collect``) to recall each episode's
+        memory (str, optional): a scripted memory (``experiments.scripted.collect``) to recall each episode's
             parameters from; ``None``: the task's default parameters.
         k (int): episodes recalled per episode. Default: ``5``.
         action_key (str): where the controller's action goes. Default: ``"base_action"``.

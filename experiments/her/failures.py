@@ -4,7 +4,7 @@ Loads the agent checkpoint a ``recipes/her/train.py`` run saved next to its
 memory, replays the run's deterministic evaluation (same eval seeds, same
 number of episodes) and sorts the failures by where the object ended::
 
-    python -m recipes.her.tools.failures bench_results/p60/own-push-s0.zarr-agent env=push seed=0
+    python -m experiments.her.failures bench_results/p60/own-push-s0.zarr-agent env=push seed=0
 
 * untouched: the object moved less than 1 cm (the agent did not push);
 * near miss: pushed, ended 5-10 cm from the goal (the success radius is 5 cm);
@@ -28,7 +28,8 @@ from torchrl.checkpoint import Checkpoint
 
 from recipes.her import utils
 
-RECIPE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # config.yaml and its groups
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+RECIPE_DIR = os.path.join(ROOT, "recipes", "her")  # config.yaml and its groups
 
 
 def failures(checkpoint: str, overrides: list[str]) -> dict:

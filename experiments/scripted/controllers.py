@@ -151,7 +151,7 @@ class _Controller:
         """The controller's episode state, ``[N, NUM_PHASES + 1]`` float32: its phase one-hot and ``t / 50``.
 
         With the observation, what a learned residual on this controller needs to
-        be Markov (:mod:`recipes.residual`): the phase is not in the env's state.
+        be Markov (:mod:`experiments.residual`): the phase is not in the env's state.
         """
         out = np.zeros((self.num_envs, self.NUM_PHASES + 1), dtype=np.float32)
         out[np.arange(self.num_envs), self.phase] = 1.0

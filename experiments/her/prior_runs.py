@@ -9,17 +9,17 @@ hydra directory under ``--root`` and its log to ``--root/NAME.log``. Run
 directories are machine-local: keep a finished run's curve with
 ``python -m recipes.her.tools.compare --archive docs/runs`` (docs/notes/results_log.md section 10)::
 
-    python -m recipes.her.tools.prior_runs --list                    # names, state, overrides
-    python -m recipes.her.tools.prior_runs --jobs 2                   # everything not finished yet
-    python -m recipes.her.tools.prior_runs --only anneal-push-s0,anneal-push-s1
+    python -m experiments.her.prior_runs --list                    # names, state, overrides
+    python -m experiments.her.prior_runs --jobs 2                   # everything not finished yet
+    python -m experiments.her.prior_runs --only anneal-push-s0,anneal-push-s1
 
-The scripted prior memories are made once by ``recipes.scripted.collect``::
+The scripted prior memories are made once by ``experiments.scripted.collect``::
 
-    python -m recipes.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym \\
+    python -m experiments.scripted.collect env=push episodes=500 noise=1 seed=0 backend=gym \\
         path=bench_results/prior/scripted-push-500.zarr
-    python -m recipes.scripted.collect env=push episodes=500 noise=0 seed=0 backend=gym \\
+    python -m experiments.scripted.collect env=push episodes=500 noise=0 seed=0 backend=gym \\
         path=bench_results/prior/scripted-push-500-n0.zarr
-    python -m recipes.scripted.collect env=pick_and_place episodes=500 noise=1 seed=0 backend=gym \\
+    python -m experiments.scripted.collect env=pick_and_place episodes=500 noise=1 seed=0 backend=gym \\
         path=bench_results/prior/scripted-pnp-500.zarr
 """
 from __future__ import annotations
@@ -31,6 +31,8 @@ import subprocess
 import sys
 import time
 
+#: the recipe every run trains with
+RECIPE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "recipes", "her")
 PUSH_PRIOR = "bench_results/prior/scripted-push-500.zarr"
 PUSH_PRIOR_CLEAN = "bench_results/prior/scripted-push-500-n0.zarr"  # default parameters: 96.6% success
 PNP_PRIOR = "bench_results/prior/scripted-pnp-500.zarr"
@@ -122,7 +124,7 @@ RUNS = _runs()
 
 def command(name: str, root: str) -> list[str]:
     """The ``train.py`` command line of run ``name``."""
-    train = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "train.py")
+    train = os.path.join(RECIPE_DIR, "train.py")
     memory = os.path.join(root, f"{name}.zarr")
     own = {o.split("=", 1)[0] for o in RUNS[name]}
     common = [o for o in COMMON if o.split("=", 1)[0] not in own]  # a run's own settings win

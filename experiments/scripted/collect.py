@@ -10,9 +10,9 @@ distance, :data:`DISTANCE_SCALE`), so that
 ``GoalIndex(storage, goal_key=("geometry", "distance"), success_key="episode_success")``
 recalls the parameters that worked for similar goals.
 
-    python -m recipes.scripted.collect env=push episodes=500 noise=1.0 path=memory/scripted/push.zarr
-    python -m recipes.scripted.collect env=pick_and_place episodes=200 noise=1.0
-    python -m recipes.scripted.collect --env slide --episodes 300 --noise 1.0 --seed 3
+    python -m experiments.scripted.collect env=push episodes=500 noise=1.0 path=memory/scripted/push.zarr
+    python -m experiments.scripted.collect env=pick_and_place episodes=200 noise=1.0
+    python -m experiments.scripted.collect --env slide --episodes 300 --noise 1.0 --seed 3
 
 (``key=value`` and ``--key value`` are the same.) ``noise=0`` runs the default
 parameters; ``noise=1`` draws every parameter of every episode around its default
@@ -272,7 +272,7 @@ def collect(
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m recipes.scripted.collect", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.scripted.collect", description=__doc__.split("\n")[0])
     parser.add_argument("--env", default="push", help="push | slide | pick_and_place (or a Fetch id)")
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--noise", type=float, default=1.0, help="0: default parameters; 1: NOISE spreads")

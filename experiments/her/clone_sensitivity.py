@@ -10,7 +10,7 @@ demonstration states. One Adam step moves every weight by up to the learning
 rate, so ``N`` steps at ``lr`` move a weight by up to ``N * lr``: 1250 actor
 steps at 1e-5 reach 0.0125::
 
-    python -m recipes.her.tools.clone_sensitivity bench_results/prior/scripted-push-500-n0.zarr \
+    python -m experiments.her.clone_sensitivity bench_results/prior/scripted-push-500-n0.zarr \
         --plot docs/img/clone_sensitivity.png
 
 ``--replot FILE.jsonl`` redraws the plot from the printed rows without re-running.
@@ -29,7 +29,8 @@ from recipes.her import utils
 from recipes.her.prior_memory import load_demos, pretrain_actor
 from torchrl_robotmem import ZarrStorage
 
-RECIPE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # config.yaml and its groups
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+RECIPE_DIR = os.path.join(ROOT, "recipes", "her")  # config.yaml and its groups
 
 
 def sensitivity(prior: str, sigmas: list[float], steps: int = 4000, seed: int = 0,
@@ -101,7 +102,7 @@ def plot(rows: list[dict], out: str) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("prior", help="a scripted memory (recipes.scripted.collect)")
+    p.add_argument("prior", help="a scripted memory (experiments.scripted.collect)")
     p.add_argument("--sigmas", default="0,0.001,0.003,0.01,0.03")
     p.add_argument("--steps", type=int, default=4000, help="cloning steps (prior.clone_steps)")
     p.add_argument("--seed", type=int, default=0)

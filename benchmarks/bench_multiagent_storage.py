@@ -5,7 +5,7 @@ Collector), then writes them in batches of ``--batch`` rows into each storage, d
 ``--samples`` batches of 256, and (ZarrStorage) reopens the store and checks every row
 bit-exact. Prints one JSON line of milliseconds.
 
-    python recipes/multiagent/bench_memory.py --frames 5000 --batch 500
+    python benchmarks/bench_multiagent_storage.py --frames 5000 --batch 500
 """
 from __future__ import annotations
 
