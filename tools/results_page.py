@@ -4,7 +4,7 @@ Every figure on those pages that an archive holds is written here, not by hand:
 each table is declared once below (which archives, which evaluation, which
 columns) and read with the recipes' own readers (``recipes.her.tools.compare.load_run``
 for a run's curve and CPU time, ``recipes.her.tools.paired`` for its per-episode
-outcomes, ``recipes.cross_env.stats`` for the tests). A page holds each table
+outcomes, ``recipes.her.tools.stats`` for the tests). A page holds each table
 between two markers; the prose around them is hand-written::
 
     <!-- generated: push_clone -->
@@ -247,7 +247,7 @@ class CrossEnvArm:
 
 @dataclass(frozen=True)
 class HandArm:
-    """Lines of a ``recipes.her.tools.hand_memory`` result file (``docs/runs/*.jsonl``) for a ``what``, at the
+    """Lines of a ``experiments.her.hand_memory`` result file (``docs/runs/*.jsonl``) for a ``what``, at the
     round whose memory holds ``rows`` rows (``None``: the last round); one line a seed."""
 
     label: str
