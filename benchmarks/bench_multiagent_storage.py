@@ -24,7 +24,6 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl_robotmem.envs_multiagent import make_mamujoco_env
 from torchrl_robotmem.storage.zarr_storage import ZarrStorage
 
-warnings.filterwarnings("ignore", message=r".*no \('next', 'is_success'\) column")
 warnings.filterwarnings("ignore", message="PettingZoo in TorchRL is tested")
 
 
@@ -57,7 +56,7 @@ def main() -> None:
     out["lazy"] = _time_buffer(TensorDictReplayBuffer(storage=LazyTensorStorage(100_000), batch_size=256),
                                data, args.batch, args.samples)
     with tempfile.TemporaryDirectory() as tmp:
-        rb = TensorDictReplayBuffer(storage=ZarrStorage(f"{tmp}/m.zarr", 100_000), batch_size=256)
+        rb = TensorDictReplayBuffer(storage=ZarrStorage(f"{tmp}/m.zarr", 100_000, goal_conditioned=False), batch_size=256)
         out["zarr"] = _time_buffer(rb, data, args.batch, args.samples)
         t = time.perf_counter()
         rb.storage.close()

@@ -23,7 +23,6 @@ AGENT_KEYS = [("agents", "observation"), ("agents", "action"), ("next", "agents"
               ("next", "agents", "truncated")]
 
 warnings.filterwarnings("ignore", message="PettingZoo in TorchRL is tested")
-warnings.filterwarnings("ignore", message=r".*no \('next', 'is_success'\) column")
 
 
 def collect(path: str, frames: int, seed: int):
@@ -35,7 +34,7 @@ def collect(path: str, frames: int, seed: int):
     from torchrl_robotmem.storage.zarr_storage import ZarrStorage
 
     torch.manual_seed(int(seed))
-    rb = TensorDictReplayBuffer(storage=ZarrStorage(path, max_size=1000, env="HalfCheetah-2x3"), batch_size=16)
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(path, max_size=1000, env="HalfCheetah-2x3", goal_conditioned=False), batch_size=16)
     make = partial(make_mamujoco_env, "HalfCheetah", "2x3", max_episode_steps=STEPS, seed=int(seed))
     collector = Collector(make, None, frames_per_batch=100, total_frames=int(frames))
     written = [data.reshape(-1) for data in collector]

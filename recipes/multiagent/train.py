@@ -28,7 +28,6 @@ from hydra.utils import to_absolute_path
 from omegaconf import DictConfig
 
 # MaMuJoCo is not goal-conditioned: rows without a success flag are what this memory holds
-warnings.filterwarnings("ignore", message=r".*the rows written have no \('next', 'is_success'\) column")
 warnings.filterwarnings("ignore", message="PettingZoo in TorchRL is tested using version")
 
 

@@ -44,6 +44,8 @@ def make_replay_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
     kwargs = {}
     if str(node._target_).endswith("ZarrStorage"):
         kwargs = {"path": memory_path(cfg), "env": f"MaMuJoCo-{cfg.env.scenario}-{cfg.env.agent_conf}"}
+    else:  # another storage (LazyTensorStorage) takes none of ZarrStorage's own arguments
+        node = {k: v for k, v in node.items() if k != "goal_conditioned"}
     storage = instantiate(node, **kwargs, _convert_="all")
     return TensorDictReplayBuffer(storage=storage, batch_size=cfg.train.minibatch_size)
 
