@@ -202,12 +202,12 @@ def test_cuda_her_over_zarr_samples_on_the_device(tmp_path):
 
 
 def _recipe(tmp_path, *overrides: str, out: str = "out") -> dict:
-    """recipes/her/train.py with ``device=DEVICE``, a few dozen frames (tests/test_recipes.py's TINY)."""
+    """recipes/her/train.py with ``device=DEVICE``, a few dozen frames (tests/training/test_her_recipe.py's TINY)."""
     import json
     import subprocess
     import sys
 
-    from test_recipes import RECIPE_DIR, TINY
+    from training.test_her_recipe import RECIPE_DIR, TINY
 
     proc = subprocess.run(
         [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, f"device={DEVICE}", *overrides,
@@ -253,7 +253,7 @@ def test_cuda_recipe_with_a_prior_memory_clone_and_anchor(tmp_path):
 
 
 def _update_parts(algo: str, rows, env, compiled: bool, graphs: bool):
-    from test_fast_update import _cfg
+    from training.test_update_step import _cfg
 
     from recipes.her import utils
     from recipes.her.prior_memory import PriorTerms

@@ -7,7 +7,7 @@
 #   env.txt          machine, versions, install, stage start/end/rc, and the digest of the recipe runs
 #   bench.log        benchmarks/bench_update.py stdout/stderr (a JSON line per mode as it finishes)
 #   bench_push.json  its results for push (eager / compiled / compiled + CUDA graphs, recipe frames/s)
-#   tests.log        pytest tests/test_cuda.py tests/test_fast_update.py
+#   tests.log        pytest tests/test_cuda.py tests/training/test_update_step.py
 #   recipe.log       FetchPush frames/s on cuda; FetchReach to 0.95 on cuda vs cpu (a RESULT JSON line a run)
 #   cpu_workers.log  FetchPush on the CPU, 8 parallel envs vs 1 (a RESULT JSON line a run: frames_per_s, ...)
 #   bench_reach.json bench_update.py for reach, last, if time is left
@@ -178,7 +178,7 @@ cpu_track() {
   recipe push_cpu_1env cpu_workers.log 60 "${WORKER[@]}" env.num_envs=1 num_threads="$THREADS"
   # b. the CUDA tests and the fast-update tests on the GPU
   stage tests 150 tests.log "$PY" -m pytest -q --maxfail=3 --durations=15 -p no:cacheprovider "${TESTS[@]}" \
-    tests/test_cuda.py tests/test_fast_update.py
+    tests/test_cuda.py tests/training/test_update_step.py
   # p1. the prior run's second seed (the curves against the CPU path's, docs/runs/prior-push-s1.json)
   prior_run 1 cpu_workers.log 150
 }

@@ -18,7 +18,7 @@ child processes. What is checked:
 Leases expire after ``TORCHRL_ROBOTMEM_LEASE_TTL`` seconds; the kill tests set
 it to 1 s so that the next writer does not wait 30 s. The random-moment kill
 loop is slow on a busy machine and runs only with ``S3_KILL_TESTS=<kills>``
-(``S3_KILL_TESTS=5 pytest tests/test_object_store.py``).
+(``S3_KILL_TESTS=5 pytest tests/storage/test_object_store.py``).
 """
 # ruff: noqa: F811  (the fixtures imported from _s3 are parameters of the tests)
 from __future__ import annotations
@@ -44,7 +44,7 @@ from torchrl_robotmem.storage._backend import S3Lease
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs SIGKILL")
 
-TESTS = Path(__file__).parent
+TESTS = Path(__file__).resolve().parents[1]
 EPISODE_LEN = 10  # make_transitions' episodes
 _DONE_KEYS = (("next", "done"), ("next", "truncated"))
 

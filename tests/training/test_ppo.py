@@ -17,7 +17,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.samplers.on_policy import OnPolicyBatchSampler
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PPO_DIR = ROOT / "recipes" / "ppo"
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))

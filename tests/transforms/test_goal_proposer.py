@@ -13,10 +13,10 @@ import pickle
 import pytest
 import torch
 from tensordict import TensorDict
-from test_recipes import run_recipe
 from torchrl.collectors import Collector
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs.utils import step_mdp
+from training.test_her_recipe import run_recipe
 
 from torchrl_robotmem import GoalProposer, ZarrStorage, make_env, make_reward_fn
 

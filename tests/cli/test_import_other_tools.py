@@ -17,7 +17,7 @@ import os
 import numpy as np
 import pytest
 from _s3 import s3_server  # noqa: F401  (pytest fixture)
-from test_recipes import run_recipe
+from training.test_her_recipe import run_recipe
 
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.cli import main
@@ -114,7 +114,7 @@ def _minari_dataset(root) -> str:
                     break
         env.create_dataset("fetchreach/random-v0", algorithm_name="random", description="random FetchReach-v4 steps",
                            eval_env=ENV, author="test", author_email="test@example.com",
-                           code_permalink="tests/test_import_tools.py")
+                           code_permalink="tests/cli/test_import_other_tools.py")
         env.close()
         assert minari.list_local_datasets()  # written where MINARI_DATASETS_PATH points
     finally:

@@ -9,7 +9,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from torchrl.data import LazyTensorStorage
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RECIPE_DIR = ROOT / "recipes" / "her"
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))

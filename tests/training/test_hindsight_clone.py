@@ -12,9 +12,10 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
-from test_recipe_priors import raw_gym_rows, recipe, summary_of, write_memory
 
-ROOT = Path(__file__).resolve().parents[1]
+from training.test_her_priors_and_pretraining import raw_gym_rows, recipe, summary_of, write_memory
+
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from recipes.her.prior_memory.hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, episode_ids, numbered_episodes  # noqa: E402

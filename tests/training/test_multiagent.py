@@ -2,7 +2,7 @@
 real envs (HalfCheetah 2x3), a real Collector, real stores reopened in fresh processes, and a
 short MADDPG run of recipes/multiagent reading the memory.
 
-Run as a script, this file is the fresh process: ``python tests/test_mamujoco.py collect|dump ...``."""
+Run as a script, this file is the fresh process: ``python tests/training/test_multiagent.py collect|dump ...``."""
 from __future__ import annotations
 
 import json
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "multiagent" / "train.py"
 STEPS = 30  # episode length: 200 frames hold 6 whole episodes and one left open
 AGENT_KEYS = [("agents", "observation"), ("agents", "action"), ("next", "agents", "observation"),

@@ -21,7 +21,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.storage.integrity import verify
 
-FIXTURES = pathlib.Path(__file__).resolve().parent / "fixtures"
+FIXTURES = pathlib.Path(__file__).resolve().parents[1] / "fixtures"
 ADVICE = "the rows written have"
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RECIPE_DIR = ROOT / "recipes" / "her"
 ENV_GROUPS = {
     "reach": "FetchReach-v4",

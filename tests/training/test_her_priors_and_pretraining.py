@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_recipes import TINY  # the tiny budget every recipe test runs with
 
-ROOT = Path(__file__).resolve().parents[1]
+from training.test_her_recipe import TINY  # the tiny budget every recipe test runs with
+
+ROOT = Path(__file__).resolve().parents[2]
 RECIPE_DIR = ROOT / "recipes" / "her"
 
 

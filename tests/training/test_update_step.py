@@ -13,12 +13,12 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
-from test_recipes import RECIPE_DIR, TINY, run_recipe
 from torchrl.data import LazyTensorStorage
 
 from torchrl_robotmem import ZarrStorage
+from training.test_her_recipe import RECIPE_DIR, TINY, run_recipe
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 

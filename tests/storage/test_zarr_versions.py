@@ -22,7 +22,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem import GoalIndex, ZarrStorage
 from torchrl_robotmem.storage.integrity import verify
 
-FIXTURES = pathlib.Path(__file__).resolve().parent / "fixtures"
+FIXTURES = pathlib.Path(__file__).resolve().parents[1] / "fixtures"
 TARBALLS = sorted(FIXTURES.glob("store-zarr-*.tar.gz"))
 
 

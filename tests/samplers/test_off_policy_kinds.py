@@ -23,7 +23,7 @@ from torchrl_robotmem.cli import main as robotmem
 from torchrl_robotmem.samplers.combined import CombinedExperienceSampler
 from torchrl_robotmem.samplers.prioritized import PersistentPrioritizedSampler
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:ZarrStorage at")
 
 
@@ -303,7 +303,7 @@ def test_state_dict_and_dumps_round_trip(tmp_path):
 
 
 def test_her_recipe_with_combined_replay_over_the_goal_sampler(tmp_path):
-    from test_recipes import run_recipe
+    from training.test_her_recipe import run_recipe
 
     s = run_recipe(tmp_path, "replay_buffer.combined=true", "replay_buffer.sampler.enabled=true",
                    f"memory.path={tmp_path / 'mem.zarr'}")

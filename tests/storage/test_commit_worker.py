@@ -17,7 +17,7 @@ from torchrl.data import ReplayBuffer
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.storage._commit_worker import CommitWorker
 
-TESTS = Path(__file__).resolve().parent
+TESTS = Path(__file__).resolve().parents[1]
 
 
 def _wait_for_worker(storage: ZarrStorage, timeout: float = 120.0) -> None:

@@ -26,7 +26,7 @@ from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.cli import COMMANDS, main
 from torchrl_robotmem.cli.inspect import summarize
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def _cli(*args: str) -> subprocess.Popen:

@@ -38,7 +38,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.cli import main
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 ENV = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 from torchrl.collectors import Collector
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 
