@@ -809,8 +809,35 @@ def reach_second(root: Path) -> str:
     return f"{head}\n\n{t}"
 
 
+PNP43_CONTROL = Runs("SAC+HER from scratch", "pnp43-control-s{}", seeds=(0,))
+PNP43_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-propose-s{}", seeds=(0,))
+
+
+def pnp_proposer_pilot(root: Path) -> str:
+    """Issue 43's pilot: FetchPickAndPlace from nothing, one seed an arm, the same recipe with and without the proposer
+    (archives ``pnp43-{control,propose}-s0.json``, the runs' summaries beside them)."""
+    from recipes.her.tools.paired import compare_arms
+
+    control, proposer = PNP43_CONTROL.read(root), PNP43_PROPOSER.read(root)
+    curves = {arm.label: arm_curve for arm, arm_curve in
+              ((PNP43_CONTROL, PNP43_CONTROL.curve(root, 0)), (PNP43_PROPOSER, PNP43_PROPOSER.curve(root, 0)))}
+    frames = sorted(next(iter(curves.values())))
+    rows = [[label, *[f2(c[f]) for f in frames], cpu(arm.cpu[0])]
+            for (label, c), arm in zip(curves.items(), (control, proposer))]
+    t = table(["arm (seed 0)", *[kf(f) for f in frames], "CPU-s"], rows)
+    summary = json.loads((root / RUNS / "pnp43-propose-s0-summary.json").read_text())["proposer"]
+    ep = compare_arms(proposer.outcomes, control.outcomes)["test"]
+    head = (f"**At {kf(frames[-1])} frames: {f2(proposer.values[0])} with the proposer, {f2(control.values[0])} "
+            f"without** (one seed an arm: no run-level figure; episode-level, the same 50 goals: McNemar p = "
+            f"{pv(ep['p'])}, {ep['a_only']} vs {ep['b_only']} discordant). The proposer chose the goal of "
+            f"{summary['proposed']} training episodes ({summary['kept']} kept the env's own, before the memory held "
+            f"`warmup_rows`), in {summary['seconds']:.2f} s of the run's {cpu(proposer.cpu[0])} CPU-s.")
+    return f"{head}\n\n{t}"
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "summary": summary,
+    "pnp_proposer_pilot": pnp_proposer_pilot,
     "reach_second": reach_second,
     "push_clone": push_clone,
     "push_replay": push_replay,
