@@ -339,7 +339,7 @@ def pretrain_on_memory(cfg: DictConfig, step, full_eval, actor_fixed: bool, cpu:
     evaluation at frame 0): reported, never looked at to stop.
     """
     mem = cfg.memory
-    episodes = mem.pretrain_eval_episodes or cfg.logger.eval_episodes
+    episodes = min(mem.pretrain_eval_episodes or cfg.logger.eval_episodes, cfg.logger.eval_episodes)  # <= an evaluation
     target = mem.pretrain_target if mem.pretrain_target is not None else cfg.logger.target_success
     with cpu.evaluating():
         check_env = make_eval_env(cfg, episodes, memory, held_out=True)
