@@ -53,6 +53,7 @@ from tensordict.utils import NestedKey, unravel_key
 from torchrl.data.replay_buffers.storages import Storage
 from torchrl.envs import Transform
 
+from .env_resets import reset_mask
 from .envs import GoalRewardFn
 from .goal_index import GoalIndex, RowFilter
 from .goal_index.metrics import GoalMetric, get_metric
@@ -237,22 +238,9 @@ class GoalProposer(Transform):
         return tensordict_reset
 
     def _reset_rows(self, tensordict: TensorDictBase | None, batch: torch.Size) -> torch.Tensor | None:
-        """Flat indices' mask of the envs that reset (``None``: all of them)."""
-        if tensordict is None:
-            return None
-        parent = self.parent
-        masks = []
-        for key in (parent.reset_keys if parent is not None else ["_reset"]):
-            flag = tensordict.get(key, None)
-            if flag is None:
-                return None
-            masks.append(flag.reshape(*batch, -1).any(-1).reshape(-1) if len(batch) else flag.reshape(1))
-        if not masks:
-            return None
-        out = masks[0]
-        for other in masks[1:]:
-            out = out | other
-        return out
+        """Flat mask of the envs that reset (``None``: all of them)."""
+        mask = reset_mask(self.parent, tensordict, batch)
+        return None if mask is None else mask.reshape(-1)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self._goals is None or self._goals.shape != next_tensordict.get(self.in_keys[0]).shape:

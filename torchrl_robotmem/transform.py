@@ -30,6 +30,7 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.data.replay_buffers.storages import Storage
 from torchrl.envs import Transform
 
+from .env_resets import reset_mask
 from .goal_index import GoalIndex, RowFilter
 from .goal_index.metrics import GoalMetric, get_metric
 from .memory_source import MemorySource
@@ -358,22 +359,7 @@ class RecallTransform(Transform):
 
     def _reset_mask(self, tensordict: TensorDictBase | None, batch: torch.Size) -> torch.Tensor | None:
         """Rows to recompute (``[*batch]`` bool), or None for all of them."""
-        if tensordict is None:
-            return None
-        parent = self.parent
-        reset_keys = parent.reset_keys if parent is not None else ["_reset"]
-        masks = []
-        for key in reset_keys:
-            flag = tensordict.get(key, None)
-            if flag is None:
-                return None
-            masks.append(flag.reshape(*batch, -1).any(-1) if len(batch) else flag.reshape(-1).any())
-        if not masks:
-            return None
-        mask = masks[0]
-        for other in masks[1:]:
-            mask = mask | other
-        return mask
+        return reset_mask(self.parent, tensordict, batch)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         in_key = self.in_keys[0]

@@ -175,7 +175,8 @@ def ctx():
     return ctx
 
 
-@pytest.mark.parametrize("case", ["write", "grow", "recreate", "format1"])
+@pytest.mark.parametrize("case", ["write", "grow", pytest.param("recreate", marks=pytest.mark.full),
+                                  pytest.param("format1", marks=pytest.mark.full)])
 def test_a_priority_write_killed_at_any_step_leaves_the_old_or_the_new_priorities(tmp_path, ctx, case):
     base = tmp_path / "base.zarr"
     _build(base, 3 * R, _old())

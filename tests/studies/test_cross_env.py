@@ -16,6 +16,9 @@ if str(ROOT) not in sys.path:
 from experiments.cross_env import run  # noqa: E402
 from recipes.her.tools.stats import mcnemar, wilson  # noqa: E402
 
+# experiments/ is reproduced in the full tier (make test-full, every landing): make test covers the product
+pytestmark = pytest.mark.full
+
 torch.set_num_threads(1)
 
 

@@ -17,6 +17,9 @@ sys.path.insert(0, str(ROOT))
 
 from experiments.her import hand_memory  # noqa: E402
 
+# experiments/ is reproduced in the full tier (make test-full, every landing): make test covers the product
+pytestmark = pytest.mark.full
+
 
 @pytest.fixture(scope="module")
 def hand_memory_path(tmp_path_factory):

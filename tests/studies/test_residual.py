@@ -21,6 +21,9 @@ from experiments.scripted.collect import collect  # noqa: E402
 from experiments.scripted.controllers import ScriptedPolicy  # noqa: E402
 from torchrl_robotmem import ZarrStorage, make_env  # noqa: E402
 
+# experiments/ is reproduced in the full tier (make test-full, every landing): make test covers the product
+pytestmark = pytest.mark.full
+
 
 def _controller_outcomes(memory: str, episodes: int = 2) -> list[int]:
     """Per-episode success of the controller recalled from ``memory`` on recipes/her's seed-0 evaluation goals."""

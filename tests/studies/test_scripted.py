@@ -19,6 +19,9 @@ from experiments.scripted.controllers import TASKS, ScriptedPolicy, default_para
 from experiments.scripted.recall_params import episode_index, mean_params, recall_episodes  # noqa: E402
 from torchrl_robotmem import make_env  # noqa: E402
 
+# experiments/ is reproduced in the full tier (make test-full, every landing): make test covers the product
+pytestmark = pytest.mark.full
+
 torch.set_num_threads(1)
 
 
