@@ -46,7 +46,8 @@ def run_recipe(tmp_path: Path, *overrides: str, out: str = "out") -> dict:
     return summary
 
 
-@pytest.mark.parametrize("algo", ["sac", "td3", "ddpg"])
+@pytest.mark.parametrize("algo", ["sac", pytest.param("td3", marks=pytest.mark.full),
+                                  pytest.param("ddpg", marks=pytest.mark.full)])
 def test_fetch_reach_runs(tmp_path, algo):
     s = run_recipe(tmp_path, f"algo={algo}", f"memory.path={tmp_path / 'mem.zarr'}")
     assert s["algo"] == algo.upper() and s["frames"] == 50 and s["memory_rows_after"] == 50

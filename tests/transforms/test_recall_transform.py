@@ -323,7 +323,7 @@ def test_check_env_specs_single_and_batched(memories, num_envs, parallel):
 
 
 @pytest.mark.timeout(600)  # a hang guard, not a speed limit
-@pytest.mark.parametrize("kind", ["sync", "multi_sync", "multi_async"])
+@pytest.mark.parametrize("kind", ["sync", "multi_sync", pytest.param("multi_async", marks=pytest.mark.full)])
 def test_inside_collectors(memories, kind):
     """Multi-process collectors build the env in spawned workers: the memory goes as a path."""
     path = memories["FetchPush-v4"]
