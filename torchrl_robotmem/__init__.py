@@ -7,7 +7,8 @@ Public surface:
   (package :mod:`torchrl_robotmem.goal_index`).
 - :class:`GoalSimilaritySampler`: a TorchRL sampler drawing rows near query goals.
 - :class:`OnPolicyBatchSampler`, :class:`CombinedExperienceSampler`, :class:`PersistentPrioritizedSampler`:
-  SLM Lab's memory kinds over a persistent storage (package :mod:`torchrl_robotmem.samplers`).
+  SLM Lab's memory kinds over a persistent storage (package :mod:`torchrl_robotmem.samplers`);
+  :class:`WindowSampler`: uniform replay over the newest rows of a growing memory.
 - :class:`RecallTransform`: an env transform appending the nearest remembered goals.
 - :class:`GoalProposer`: an env transform pursuing remembered goals where the memory is sparsest (MEGA).
 - :class:`RobotMemory`: robotmem's quick-start API over the same store.
@@ -21,7 +22,7 @@ from .goal_index import GoalIndex, recall
 from .memory import RobotMemory
 from .proposer import GoalProposer
 from .sampler import GoalSimilaritySampler
-from .samplers import CombinedExperienceSampler, OnPolicyBatchSampler, PersistentPrioritizedSampler
+from .samplers import CombinedExperienceSampler, OnPolicyBatchSampler, PersistentPrioritizedSampler, WindowSampler
 from .storage import ZarrStorage
 from .transform import RecallTransform
 
@@ -34,6 +35,7 @@ __all__ = [
     "PersistentPrioritizedSampler",
     "RecallTransform",
     "RobotMemory",
+    "WindowSampler",
     "ZarrStorage",
     "make_env",
     "make_reward_fn",
