@@ -156,7 +156,8 @@ class GoalIndex:
             raise ValueError(f"max_cached_filters must be >= 1, got {max_cached_filters}.")
         self.max_cached_filters = int(max_cached_filters)
         self._tracker = ColumnTracker(storage, goal_key, weak=weak, tail_size=self.tail_size,
-                                      rebuild_fraction=self.rebuild_fraction)
+                                      rebuild_fraction=self.rebuild_fraction,
+                                      float64_goals=self.metric.embedding_is_goals)
         self._views: OrderedDict[FilterKey, FilterView] = OrderedDict()
         self._dropped_builds = 0
         # A shared index may serve a collector thread's transform and the trainer's sampler at once.
@@ -246,6 +247,19 @@ class GoalIndex:
             "views": len(self._views),
             "view_builds": self._dropped_builds + sum(v.builds for v in self._views.values()),
         }
+
+    def nbytes(self) -> int:
+        """Bytes of RAM the index itself holds, the storage's own columns not counted.
+
+        The snapshot of the goal column (and of each filter column in use),
+        the change log, and per filter view: a 1-byte owner per row, the
+        int32 row ids of each segment (none for a view every row passes) and
+        its KD-tree (float64 goal copy, ``intp`` indices, 72-byte nodes) or
+        brute-force matrix. For 3-D goals and the unfiltered view this is
+        about 65 bytes per row; see docs/recall.md ("Memory").
+        """
+        with self._lock:
+            return self._tracker.nbytes() + sum(v.nbytes() for v in self._views.values())
 
     # -- queries ----------------------------------------------------------------
     def refresh(self, filter: FilterArg = None, **filter_keywords) -> GoalIndex:

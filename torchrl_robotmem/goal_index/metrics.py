@@ -57,6 +57,9 @@ class GoalMetric:
     goal_dim: int | None = None
     #: whether Euclidean distances between embeddings equal the metric (not only bound it)
     embedding_exact: bool = False
+    #: whether :meth:`embed` is the goals themselves as float64: the index then keeps its
+    #: goal snapshot in float64 and the KD-tree searches it in place (one copy of the goals)
+    embedding_is_goals: bool = False
 
     def distance(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """Distance between ``a[..., d]`` and ``b[..., d]`` (broadcast) -> ``[...]``."""
@@ -112,6 +115,7 @@ class EuclideanMetric(GoalMetric):
 
     name = "euclidean"
     embedding_exact = True
+    embedding_is_goals = True
 
     @property
     def key(self) -> tuple:

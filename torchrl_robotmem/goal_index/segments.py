@@ -22,33 +22,81 @@ from scipy.spatial import cKDTree
 
 from torchrl_robotmem.goal_index.metrics import GoalMetric
 
-__all__ = ["BruteSegment", "Segment", "TreeSegment", "build_segment", "search_segment"]
+__all__ = ["BruteSegment", "Segment", "TreeSegment", "build_segment", "row_dtype", "search_segment"]
 
 LEVEL_MAIN, LEVEL_MID, LEVEL_LIVE = 1, 2, 3
 _F32_EPS = 2.0**-24
 
 
-class Segment:
-    """Storage rows frozen at build time, searchable for their k nearest."""
+NODE_BYTES = 72
+"""Bytes of one ``cKDTree`` node (scipy's ``ckdtreenode``: nine 8-byte fields)."""
 
-    def __init__(self, level: int, rows: np.ndarray):
+LEAFSIZE = 16
+
+
+def row_dtype(rows: np.ndarray) -> type:
+    """int32 when every row of ``rows`` fits (storages below 2**31 rows), else int64."""
+    return np.int32 if rows.size == 0 or int(rows.max()) < 2**31 - 1 else np.int64
+
+
+class Segment:
+    """Storage rows frozen at build time, searchable for their k nearest.
+
+    ``rows`` is an array of storage rows, or an int ``n`` for rows ``0..n-1``
+    (the main segment of a view every row passes: no array is held).
+    Row ids are kept once, as int32 where they fit, with a trailing ``-1``
+    (a KD-tree's "not found", ``loc == size``, maps to it).
+    """
+
+    def __init__(self, level: int, rows: np.ndarray | int):
         self.level = level
-        self.rows = rows
-        self.size = int(rows.size)
         self.n_stale = 0
-        self._rows_ext = np.append(rows, -1)  # KD-tree "not found" (loc == size) -> -1
+        if isinstance(rows, (int, np.integer)):
+            self.size = int(rows)
+            self._rows_ext = None
+        else:
+            self.size = int(rows.size)
+            self._rows_ext = np.empty(self.size + 1, dtype=row_dtype(rows))
+            self._rows_ext[:-1] = rows
+            self._rows_ext[-1] = -1
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The storage rows of the segment (made on the fly for a ``0..n-1`` segment)."""
+        return np.arange(self.size) if self._rows_ext is None else self._rows_ext[:-1]
 
     def _pos(self, loc: np.ndarray) -> np.ndarray:
-        return self._rows_ext[loc]
+        """Storage rows (int64) of segment positions; ``loc == size`` -> ``-1``."""
+        if self._rows_ext is None:
+            return np.where(loc < self.size, loc, -1).astype(np.int64, copy=False)
+        return self._rows_ext[loc].astype(np.int64, copy=False)
+
+    def nbytes(self) -> int:
+        """Bytes this segment holds (row ids and search structure)."""
+        return 0 if self._rows_ext is None else int(self._rows_ext.nbytes)
 
 
 class TreeSegment(Segment):
-    """A ``cKDTree`` over the metric's embedding of the rows."""
+    """A ``cKDTree`` over the metric's embedding of the rows.
 
-    def __init__(self, level, rows, emb: np.ndarray, exact: bool):
+    The tree keeps ``emb`` as its data (``copy_data=False``). For the
+    Euclidean metric over rows ``0..n-1`` that is the tracker's float64 goal
+    snapshot itself (``shares_data``): rows changed later are overwritten in
+    it, but they are stale here (their owner moved) and skipped, and an
+    unchanged row is where the tree put it, so the search of the live rows
+    stays exact; the tree only needs the split planes it was built with.
+    """
+
+    def __init__(self, level, rows, emb: np.ndarray, exact: bool, shares_data: bool = False):
         super().__init__(level, rows)
         self.exact = exact
-        self.tree = cKDTree(emb, leafsize=16, compact_nodes=False, balanced_tree=False, copy_data=False)
+        self.shares_data = shares_data
+        self.tree = cKDTree(emb, leafsize=LEAFSIZE, compact_nodes=False, balanced_tree=False, copy_data=False)
+
+    def nbytes(self) -> int:
+        t = self.tree
+        data = 0 if self.shares_data else t.n * t.m * 8  # float64 data, unless it is the snapshot
+        return super().nbytes() + data + t.n * np.dtype(np.intp).itemsize + t.size * NODE_BYTES
 
     def query(self, qvars, kk, upper):
         kk = min(kk, self.size)
@@ -85,7 +133,12 @@ class BruteSegment(Segment):
             self.exact = False
         else:
             self.X = torch.from_numpy(np.ascontiguousarray(goals64, dtype=np.float64))
+            self.norms = None
             self.exact = True
+
+    def nbytes(self) -> int:
+        extra = 0 if self.norms is None else self.norms.nbytes
+        return super().nbytes() + self.X.nbytes + extra
 
     def _topk(self, score_fn, Q, kk):
         chunk = max(8192, (1 << 22) // max(Q, 1))
@@ -134,14 +187,23 @@ class BruteSegment(Segment):
         return np.concatenate(pos, 1) if len(pos) > 1 else pos[0], None, bound
 
 
-def build_segment(level: int, rows: np.ndarray, goals: np.ndarray, backend: str, metric: GoalMetric) -> Segment:
-    """A segment of ``backend`` (``"kdtree"`` / ``"brute"``) over ``rows`` whose goals are ``goals [len(rows), d]``."""
+def build_segment(level: int, rows: np.ndarray | int, goals: np.ndarray, backend: str,
+                  metric: GoalMetric) -> Segment:
+    """A segment of ``backend`` (``"kdtree"`` / ``"brute"``) over ``rows`` whose goals are ``goals [len(rows), d]``.
+
+    ``rows`` is an array of storage rows, or an int ``n`` for rows
+    ``0..n-1``, whose ``goals`` are then a view of the tracker's snapshot: a
+    KD-tree over the Euclidean metric's embedding (float64 goals as they
+    are) searches that view in place.
+    """
+    size = rows if isinstance(rows, (int, np.integer)) else rows.size
     if backend == "kdtree":
         emb = metric.embed(goals)
         exact = metric.embedding_exact and len(metric.embed_queries(emb[:0])) == 1
-        if rows.size == 0:
+        if size == 0:
             return BruteSegment(level, rows, emb, None, metric)
-        return TreeSegment(level, rows, emb, exact)
+        shares = isinstance(rows, (int, np.integer)) and np.may_share_memory(emb, goals)
+        return TreeSegment(level, rows, emb, exact, shares)
     if metric.embeddable:
         return BruteSegment(level, rows, metric.embed(goals), None, metric)
     return BruteSegment(level, rows, None, goals.astype(np.float64), metric)

@@ -102,15 +102,21 @@ def _numpy(col: torch.Tensor) -> np.ndarray:
     return torch.Tensor.numpy(col.as_subclass(torch.Tensor) if type(col) is not torch.Tensor else col)
 
 
-def _grow(snap: np.ndarray | None, live: np.ndarray, n: int) -> np.ndarray:
-    """Snapshot buffer with room for ``n`` rows (capacity doubles); new rows left for the caller."""
+_DIFF_CHUNK = 1 << 20  # rows compared at a time: bounds the comparison's temporaries
+
+
+def _grow(snap: np.ndarray | None, live: np.ndarray, n: int, cap: int, dtype=None) -> np.ndarray:
+    """Snapshot buffer with room for ``n`` rows (capacity doubles, up to ``cap``); new rows left for the caller.
+
+    A new buffer (``snap is None``) has ``dtype`` (default: ``live``'s) and holds ``live[:n]``.
+    """
     if snap is None:
-        out = np.empty((max(n, 1), *live.shape[1:]), dtype=live.dtype)
+        out = np.empty((max(n, 1), *live.shape[1:]), dtype=dtype or live.dtype)
         out[:n] = live[:n]
         return out
     if snap.shape[0] >= n:
         return snap
-    out = np.empty((max(n, 2 * snap.shape[0]), *snap.shape[1:]), dtype=snap.dtype)
+    out = np.empty((max(n, min(2 * snap.shape[0], cap)), *snap.shape[1:]), dtype=snap.dtype)
     out[: snap.shape[0]] = snap
     return out
 
@@ -140,6 +146,10 @@ class ColumnTracker:
     Keyword Args:
         weak (bool): hold the storage weakly (a shared index must not keep its
             storage alive). Defaults to ``False``.
+        float64_goals (bool): keep the snapshot of a floating-point goal
+            column in float64 (the values are the same: float16/32 convert
+            exactly), so that a Euclidean KD-tree searches it in place
+            instead of holding its own float64 copy. Defaults to ``False``.
         tail_size (int), rebuild_fraction (float): the change log keeps about
             ``2 * max(tail_size, rebuild_fraction * n)`` rows; readers further
             behind rebuild. Defaults to 4096 and 0.05 (those of ``GoalIndex``).
@@ -168,9 +178,11 @@ class ColumnTracker:
         weak: bool = False,
         tail_size: int = 4096,
         rebuild_fraction: float = 0.05,
+        float64_goals: bool = False,
     ):
         self._ref = weakref.ref(storage) if weak else _StrongRef(storage)
         self.goal_key = goal_key
+        self.float64_goals = float64_goals
         self.tail_size = tail_size
         self.rebuild_fraction = rebuild_fraction
         self._tracked: dict[NestedKey, str] = {}  # filter columns: key -> what needs it
@@ -204,6 +216,25 @@ class ColumnTracker:
     def floor(self) -> int:
         """Oldest revision :meth:`changed_since` can answer from; older readers rebuild."""
         return self._floor
+
+    @property
+    def capacity(self) -> int:
+        """Rows the snapshots can grow to without reallocating past the storage: its ``max_size`` (or unbounded)."""
+        try:
+            cap = int(self.storage.max_size)
+        except (AttributeError, TypeError, ValueError, OverflowError):  # an unbounded storage
+            return 2**62
+        return max(cap, self.n, 1)
+
+    def nbytes(self) -> int:
+        """Bytes the tracker holds: its column snapshots (their allocated rows) and the change log."""
+        return int(sum(a.nbytes for a in self._snap.values()) + sum(rows.nbytes for _, rows in self._log))
+
+    def _snap_dtype(self, key: NestedKey, live: np.ndarray) -> np.dtype:
+        """The dtype the snapshot of ``key`` has for live values ``live``."""
+        if key == self.goal_key and self.float64_goals and live.dtype.kind == "f":
+            return np.dtype(np.float64)
+        return live.dtype
 
     def column(self, key: NestedKey) -> np.ndarray:
         """Snapshot of a tracked column (``[>= n, *shape]``; rows ``[:n]`` are current)."""
@@ -240,7 +271,7 @@ class ColumnTracker:
             raise ValueError(
                 f"{what} needs one value per row in {_key_str(key)}, got shape {tuple(col.shape)}."
             )
-        self._snap[key] = _grow(None, col, self.n)
+        self._snap[key] = _grow(None, col, self.n, self.capacity)
         self._tracked[key] = what
         self._advice[key] = advice
 
@@ -275,7 +306,7 @@ class ColumnTracker:
             )
         shapes_changed = any(
             key in self._snap and (cols[key].shape[1:] != self._snap[key].shape[1:]
-                                   or cols[key].dtype != self._snap[key].dtype)
+                                   or self._snap_dtype(key, cols[key]) != self._snap[key].dtype)
             for key in cols
         )
         if self.goal_shape is None or n < self.n or shapes_changed:
@@ -285,7 +316,7 @@ class ColumnTracker:
             self._reset()
             self.goal_shape = goals.shape[1:]
             for key, live in cols.items():
-                self._snap[key] = _grow(None, live, n)
+                self._snap[key] = _grow(None, live, n, n, self._snap_dtype(key, live))
             self.n = n
             self._rev = rev
             return
@@ -294,18 +325,27 @@ class ColumnTracker:
         for key, live in cols.items():
             snap = self._snap[key]
             width = int(np.prod(live.shape[1:], dtype=np.int64)) or 1
-            diff = np.flatnonzero(_bits(live[:m]) != _bits(snap[:m]))
-            if diff.size:
-                changed[diff // width] = True
+            for c0 in range(0, m, _DIFF_CHUNK):
+                c1 = min(c0 + _DIFF_CHUNK, m)
+                # a float64 snapshot of float32 goals: the conversion is exact and deterministic,
+                # so equal bits after it mean equal stored bits
+                now = live[c0:c1] if live.dtype == snap.dtype else live[c0:c1].astype(snap.dtype)
+                diff = np.flatnonzero(_bits(now) != _bits(snap[c0:c1]))
+                if diff.size:
+                    changed[c0 + diff // width] = True
         rows = np.flatnonzero(changed)
+        del changed
+        cap = self.capacity
         for key, live in cols.items():
-            snap = self._snap[key] = _grow(self._snap[key], live, n)
+            snap = self._snap[key] = _grow(self._snap[key], live, n, cap)
             if rows.size:
                 snap[rows] = live[rows]
             if n > m:
                 snap[m:n] = live[m:n]
         if n > m:
             rows = np.concatenate([rows, np.arange(m, n)])
+        if n < 2**31 - 1:
+            rows = rows.astype(np.int32)  # the log holds int32 row ids where they fit
         if rows.size:
             self.revision += 1
             self._log.append((self.revision, rows))
@@ -327,4 +367,5 @@ class ColumnTracker:
     def __setstate__(self, state):
         self.__dict__.update(state)
         self.__dict__.setdefault("_advice", {})
+        self.__dict__.setdefault("float64_goals", False)
         self._reset()

@@ -29,6 +29,7 @@ from torchrl_robotmem.goal_index.segments import (
     LEVEL_MID,
     Segment,
     build_segment,
+    row_dtype,
     search_segment,
 )
 from torchrl_robotmem.goal_index.tracking import ColumnTracker
@@ -85,6 +86,12 @@ class FilterView:
             self._members = (rev, torch.from_numpy(np.flatnonzero(self.owner[: self.tracker.n])))
         return self._members[1]
 
+    def nbytes(self) -> int:
+        """Bytes this view holds: the row owner map, its segments, the cached member rows."""
+        members = 0 if self._members is None else self._members[1].nbytes
+        return int(self.owner.nbytes) + sum(s.nbytes() for s in (self.main, self.mid, self.live)
+                                            if s is not None) + int(members)
+
     @property
     def size(self) -> int:
         """Rows currently held (stale entries excluded)."""
@@ -97,7 +104,9 @@ class FilterView:
             return
         n = tr.n
         if self.owner.size < n:
-            owner = np.zeros(max(n, 2 * self.owner.size), dtype=np.int8)
+            # grows as the tracker's snapshots do, never past their capacity
+            cap = max(n, min(2 * self.owner.size, tr.capacity))
+            owner = np.zeros(cap, dtype=np.int8)
             owner[: self.owner.size] = self.owner
             self.owner = owner
         rows = tr.changed_since(self.seen) if self.main is not None else None
@@ -135,26 +144,37 @@ class FilterView:
         self.seen = tr.revision
 
     def _rebuild(self) -> None:
-        rows = np.flatnonzero(self._mask(None))
+        n = self.tracker.n
+        mask = self._mask(None)
         self.owner[:] = 0
-        self.owner[rows] = LEVEL_MAIN
+        if mask.all():  # every row passes: the main segment holds rows 0..n-1 without an array of them
+            rows = n
+            self.owner[:n] = LEVEL_MAIN
+        else:
+            rows = np.flatnonzero(mask)
+            rows = rows.astype(row_dtype(rows), copy=False)
+            self.owner[rows] = LEVEL_MAIN
+        del mask
+        self.main = None  # let the old segment go before the new one is built
         self.mid = self.live = None
         self.backend, main = self._choose_backend(rows)
         self.main = main if main is not None else self._segment(LEVEL_MAIN, rows, self.backend)
         self.seen = self.tracker.revision
         self.builds += 1
 
-    def _segment(self, level: int, rows: np.ndarray, backend: str) -> Segment:
-        return build_segment(level, rows, self.tracker.flat(self.tracker.goal_key, rows), backend, self.metric)
+    def _segment(self, level: int, rows: np.ndarray | int, backend: str) -> Segment:
+        sel = slice(0, rows) if isinstance(rows, int) else rows  # a slice: a view, not a copy of the goals
+        return build_segment(level, rows, self.tracker.flat(self.tracker.goal_key, sel), backend, self.metric)
 
-    def _choose_backend(self, rows: np.ndarray) -> tuple[str, Segment | None]:
+    def _choose_backend(self, rows: np.ndarray | int) -> tuple[str, Segment | None]:
         """The backend for the segments, and the main segment when the probe built it."""
         if self.backend_choice != "auto":
             return self.backend_choice, None
         if not self.metric.embeddable:
             return "brute", None
         emb_dim = self.metric.embed(np.zeros((1, self.tracker.goal_dim))).shape[1]
-        if emb_dim <= 4 or rows.size < _PROBE_MIN_ROWS:
+        count = rows if isinstance(rows, int) else rows.size
+        if emb_dim <= 4 or count < _PROBE_MIN_ROWS:
             return "kdtree", None
         # Time both backends on a few queries near stored goals and keep the faster.
         tree = self._segment(LEVEL_MAIN, rows, "kdtree")
