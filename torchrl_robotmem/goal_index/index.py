@@ -57,6 +57,20 @@ class GoalIndex:
     a storage shares with :func:`recall`, the sampler, the transform and
     :class:`~torchrl_robotmem.RobotMemory`; the constructor makes a private one.
 
+    Memory (:meth:`nbytes`): the index holds one snapshot of the goal
+    column (float64 for the Euclidean metric, which its KD-tree searches in
+    place; the goals' own dtype otherwise) and, per filter view in use, a
+    1-byte owner per stored row plus its search structure. For 3-D goals and
+    the unfiltered view that is 24 (goals) + 1 (owner) + 8 (KD-tree
+    indices) + about 13 (KD-tree nodes) = about **46 bytes a row** (460 MB
+    at 10M rows; 74 before issue 41, which held the goals twice and two
+    int64 row-id arrays). A filtered view adds 1 byte a stored row and
+    about 49 a member row (int32 row id, its own float64 goals, tree); a
+    filter column adds its dtype's size a row. Nothing grows past the
+    storage's ``max_size``; nothing of the index is on disk (it is rebuilt
+    from the storage's columns after a reopen, at about 0.5-0.7 s of CPU per
+    million 3-D goals, and kept in step incrementally afterwards).
+
     Args:
         storage (Storage or ReplayBuffer): a ``TensorStorage`` with ``ndim=1``
             (``LazyTensorStorage``, ``LazyMemmapStorage``, ``ZarrStorage``), or
@@ -253,10 +267,13 @@ class GoalIndex:
 
         The snapshot of the goal column (and of each filter column in use),
         the change log, and per filter view: a 1-byte owner per row, the
-        int32 row ids of each segment (none for a view every row passes) and
-        its KD-tree (float64 goal copy, ``intp`` indices, 72-byte nodes) or
-        brute-force matrix. For 3-D goals and the unfiltered view this is
-        about 65 bytes per row; see docs/recall.md ("Memory").
+        int32 row ids of each segment (none for a view every row passes),
+        its KD-tree (``intp`` indices, 72-byte nodes, and a float64 copy of
+        the goals unless it searches the snapshot itself) or brute-force
+        matrix, and the cached :meth:`member_rows`. Allocated rows are
+        counted (a snapshot may be ahead of ``len(storage)``, never past its
+        ``max_size``). 3-D Euclidean goals, unfiltered: about 46 bytes a row
+        (see the class docstring).
         """
         with self._lock:
             return self._tracker.nbytes() + sum(v.nbytes() for v in self._views.values())
