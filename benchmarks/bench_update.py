@@ -42,8 +42,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer  # noqa: E402
 
 from recipes.her import utils  # noqa: E402
-from recipes.her.prior_memory import PriorTerms  # noqa: E402
-from recipes.her.update import Updater, draw_batches  # noqa: E402
+from recipes.her.update import LossTerms, Updater, draw_batches  # noqa: E402
 from torchrl_robotmem import ZarrStorage  # noqa: E402
 
 CONFIGS = {"reach": ["env=reach"], "push": ["env=push"]}
@@ -153,7 +152,7 @@ def bench_mode(name, cfg, env, rows, her, plain, fixed, device, compiled: bool, 
     sota_full = _median_ms(sota_step, device, args.updates, args.repeat)
     # the recipe's Updater, HER over ZarrStorage
     loss, optimizer, target = _agent(cfg, env, rows, device, compiled, graphs)
-    updater = Updater(PriorTerms(loss, utils.loss_keys(cfg)), optimizer, target, compile=compiled,
+    updater = Updater(LossTerms(loss, utils.loss_keys(cfg)), optimizer, target, compile=compiled,
                       compile_mode="default" if graphs else args.compile_mode, cudagraphs=graphs, warmup=5)
     for _ in range(args.warmup + 5):
         updater(fixed)

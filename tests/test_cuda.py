@@ -201,18 +201,21 @@ def test_cuda_her_over_zarr_samples_on_the_device(tmp_path):
     assert torch.equal(gpu["next", "reward"][clear], cpu["next", "reward"][clear])
 
 
-def _recipe(tmp_path, *overrides: str, out: str = "out") -> dict:
-    """recipes/her/train.py with ``device=DEVICE``, a few dozen frames (tests/training/test_her_recipe.py's TINY)."""
+def _recipe(tmp_path, *overrides: str, out: str = "out", variants: bool = False) -> dict:
+    """recipes/her/train.py with ``device=DEVICE``, a few dozen frames (tests/training/test_her_recipe.py's TINY).
+
+    ``variants``: ``python -m experiments.prior_variants.train`` (the recipe with the prior-memory variants).
+    """
     import json
     import subprocess
     import sys
 
-    from training.test_her_recipe import RECIPE_DIR, TINY
+    from training.test_her_recipe import RECIPE_DIR, ROOT, TINY
 
+    train = ["-m", "experiments.prior_variants.train"] if variants else [str(RECIPE_DIR / "train.py")]
     proc = subprocess.run(
-        [sys.executable, str(RECIPE_DIR / "train.py"), *TINY, f"device={DEVICE}", *overrides,
-         f"hydra.run.dir={tmp_path / out}"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+        [sys.executable, *train, *TINY, f"device={DEVICE}", *overrides, f"hydra.run.dir={tmp_path / out}"],
+        cwd=ROOT if variants else tmp_path, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return json.loads((tmp_path / out / "summary.json").read_text())
@@ -233,7 +236,7 @@ def test_cuda_recipe_trains_and_resumes(tmp_path, algo):
 
 
 def test_cuda_recipe_with_a_prior_memory_clone_and_anchor(tmp_path):
-    """prior.paths + clone_steps + bc + clone_anchor (recipes/her/prior_memory) with the actor on the GPU."""
+    """prior.paths + clone_steps + bc + clone_anchor (experiments/prior_variants) with the actor on the GPU."""
     from experiments.scripted.collect import main as collect
 
     prior = tmp_path / "scripted-push.zarr"
@@ -241,11 +244,11 @@ def test_cuda_recipe_with_a_prior_memory_clone_and_anchor(tmp_path):
     s = _recipe(tmp_path, "env=push", "algo=td3", f"memory.path={tmp_path / 'td3.zarr'}", "prior=bc", f"prior.paths=[{prior}]",
                 *EAGER,
                 "prior.clone_steps=5", "prior.bc=0.4", "prior.bc_original_goals=true",
-                "prior.clone_anchor=10", "prior.freeze_normalizer=true", out="td3")
+                "prior.clone_anchor=10", "prior.freeze_normalizer=true", out="td3", variants=True)
     assert s["updates"] > 0
     s = _recipe(tmp_path, "env=push", f"memory.path={tmp_path / 'crr.zarr'}", "prior=mix", f"prior.paths=[{prior}]", "algo=td3",
                 "prior.clone_steps=5", "prior.actor_update=crr", "replay_buffer.sampler.enabled=true",
-                *EAGER, out="crr")
+                *EAGER, out="crr", variants=True)
     assert s["updates"] > 0
 
 
@@ -256,8 +259,7 @@ def _update_parts(algo: str, rows, env, compiled: bool, graphs: bool):
     from training.test_update_step import _cfg
 
     from recipes.her import utils
-    from recipes.her.prior_memory import PriorTerms
-    from recipes.her.update import Updater
+    from recipes.her.update import LossTerms, Updater
 
     cfg = _cfg(f"algo={algo}", f"device={DEVICE}")
     torch.manual_seed(0)
@@ -266,7 +268,7 @@ def _update_parts(algo: str, rows, env, compiled: bool, graphs: bool):
     model, _ = utils.make_agent(cfg, env, normalizer)
     loss, target = utils.make_loss_module(cfg, model, compiled=True)
     optimizer = utils.make_optimizer(cfg, loss, capturable=graphs)
-    updater = Updater(PriorTerms(loss, utils.loss_keys(cfg)), optimizer, target, compile=compiled,
+    updater = Updater(LossTerms(loss, utils.loss_keys(cfg)), optimizer, target, compile=compiled,
                       compile_mode="default", cudagraphs=graphs, warmup=2,
                       policy_delay=cfg.algo.policy_update_delay if algo == "td3" else 1)
     return cfg, loss, updater, normalizer

@@ -166,7 +166,7 @@ def make_arms(storage, baseline: StrikeParams, k: int) -> dict[str, ParamFn]:
 
 
 # the learned arm's runs: recipes/her overrides on top of env=slide (the clone arm is the recipe that met the
-# FetchPush and PickAndPlace goals at frame 0, docs/results.md sections 11-12)
+# FetchPush and PickAndPlace goals at frame 0, docs/results.md sections 11-12: experiments.prior_variants.train)
 LEARNED_ARMS: dict[str, list[str]] = {
     "prior": ["prior=mix"],
     "scratch": [],
@@ -205,7 +205,8 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str,
     if frames <= 0 or memory is None:
         return {"status": "not run",
                 "reason": "learned_frames=0; set learned_frames=N (about 75 CPU-ms a frame here) to run it"}
-    train = os.path.join(ROOT, "recipes", "her", "train.py")
+    recipe = [sys.executable, os.path.join(ROOT, "recipes", "her", "train.py")]
+    variants = [sys.executable, "-m", "experiments.prior_variants.train"]  # the clone arm: recipes/her + prior=clone
     if jobs < 1:
         raise ValueError(f"learned_jobs must be >= 1, got {jobs}")
     unknown = [a for a in arms if a not in LEARNED_ARMS]
@@ -223,14 +224,14 @@ def learned_arm(memory: str | None, *, frames: int, seeds: int, workdir: str,
                 elif os.path.exists(p):
                     os.remove(p)
         # collector.resume: a run stopped earlier (killed, out of time) continues, a finished one is kept
-        cmd = [sys.executable, train, "env=slide", f"seed={seed}", f"memory.path={mem}",
+        cmd = [*(variants if arm == "clone" else recipe), "env=slide", f"seed={seed}", f"memory.path={mem}",
                f"collector.total_frames={frames}", f"logger.eval_iter={eval_iter}",
                f"logger.eval_episodes={eval_episodes}", "logger.plot=false", f"hydra.run.dir={run_dir}",
                "collector.resume=true", *LEARNED_ARMS[arm], *(overrides or [])]
         if arm != "scratch":
             cmd.append(f"prior.paths=[{os.path.abspath(memory)}]")
         log(f"learned arm: {name}: {' '.join(cmd[1:])}")
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, cwd=ROOT)
         with open(os.path.join(run_dir, "summary.json")) as f:
             summary = json.load(f)
         log(f"learned arm: {name}: success {summary['curve'][-1][1]:.2f} after {summary['frames']} "

@@ -10,9 +10,10 @@ tree), in the order they appear, and proves they are the same run:
 
 * ``recipes/her/train.py`` commands: the old overrides are composed with the recipe's
   config at ``--recipe-base`` (read from git, nothing checked out), the new ones with
-  ``recipes/her/config.yaml``; old keys are mapped to their new names (:data:`RENAMED`)
+  ``recipes/her/config.yaml`` and the variants' keys (``experiments/prior_variants/variants.yaml``;
+  ``python -m experiments.prior_variants.train`` commands count as ``train.py`` ones); old keys are mapped to their new names (:data:`RENAMED`)
   and every value the training loop reads is compared; the new config must also pass
-  ``prior_memory.check_prior_config`` (the run would start);
+  ``experiments.prior_variants.check_prior_config`` (the run would start);
 * ``prior_runs`` commands: every run they launch, old ``RUNS`` against new, the same way;
 * ``failures``: its trailing overrides, the same way; ``compare`` / ``clone_sensitivity``:
   the same arguments, and the new module exists.
@@ -43,10 +44,12 @@ import tempfile
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from recipes.her.prior_memory import check_prior_config
+from experiments.prior_variants import check_prior_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-RECIPE_DIR = os.path.join(ROOT, "recipes", "her")
+# the recipe's config now, with the prior-memory variants' keys (issue 42 moved them to experiments/prior_variants,
+# whose variants.yaml composes recipes/her/config.yaml): every run a doc names composes there
+NEW_DIR = os.path.join(ROOT, "experiments", "prior_variants")
 RECIPE_BASE = "59b9ae5"  # the recipe before the redesign
 DOCS_BASE = "c658576"    # the docs before their commands were renamed (docs/results.md already split by issue 24)
 BASE_OF = {"recipes/README.md": RECIPE_BASE}  # renamed together with the recipe
@@ -77,9 +80,10 @@ NEW_ONLY = {"num_threads": 1, "prior.name": None, "memory.pretrain_eval_every": 
             "memory.pretrain_eval_episodes": None, "memory.pretrain_target": None, "memory.pretrain_patience": None}
 OLD_TOOLS = {"train.py", "prior_runs.py", "compare.py", "failures.py", "clone_sensitivity.py"}
 COMMAND = re.compile(r"(?:python3?|\$\(PY\)|\.venv/bin/python)\s+"
-                     r"(?:-m\s+(?:recipes\.her\.(?:tools\.)?|experiments\.her\.)(\w+)|(?:recipes/her/(?:tools/)?|experiments/her/)(\w+)\.py)")
-#: where a tool's module lives now: the recipe's own tools, or the experiments' (issue 42)
-TOOL_PACKAGES = ("recipes.her.tools", "experiments.her")
+                     r"(?:-m\s+(?:recipes\.her\.(?:tools\.)?|experiments\.her\.|experiments\.prior_variants\.)(\w+)|(?:recipes/her/(?:tools/)?|experiments/her/)(\w+)\.py)")
+#: where a tool's module lives now: the recipe's own tools, or the experiments' (issue 42; the recipe with the
+#: prior-memory variants is ``python -m experiments.prior_variants.train``, tool ``train`` as the recipe's)
+TOOL_PACKAGES = ("recipes.her.tools", "experiments.her", "experiments.prior_variants")
 
 
 # -- commands in a doc ---------------------------------------------------------
@@ -143,10 +147,13 @@ def makefile_variables(text: str) -> dict[str, str]:
 
 
 def compose_config(config_dir: str, overrides: list[str]):
-    """The composed config of ``overrides`` (``hydra.*`` left out: where a run writes, not what it does)."""
+    """The composed config of ``overrides`` (``hydra.*`` left out: where a run writes, not what it does).
+
+    ``config_dir``: an old recipe's directory (its ``config.yaml``), or :data:`NEW_DIR` (``variants.yaml``).
+    """
     overrides = [o for o in overrides if not o.startswith("hydra.")]
     with initialize_config_dir(config_dir=config_dir, version_base="1.3"):
-        return compose("config", overrides=overrides)
+        return compose("variants" if config_dir == NEW_DIR else "config", overrides=overrides)
 
 
 def flat(cfg) -> dict:
@@ -238,12 +245,12 @@ class Checker:
         except Exception as err:  # a placeholder (``...``, ``NAME``): it never composed a run
             self.placeholders += 1
             try:
-                compose_config(RECIPE_DIR, new)
+                compose_config(NEW_DIR, new)
             except Exception:
                 return []  # neither composes: a sketch in prose, not a command
             return [f"the old command did not compose ({type(err).__name__}) but the new one does"]
         try:
-            new_cfg = compose_config(RECIPE_DIR, new)
+            new_cfg = compose_config(NEW_DIR, new)
             check_prior_config(new_cfg)
         except Exception as err:
             return [f"the new command is refused: {err}"]
@@ -261,7 +268,7 @@ class Checker:
         tool, args = new
         if tool == "train":
             try:
-                check_prior_config(compose_config(RECIPE_DIR, args))
+                check_prior_config(compose_config(NEW_DIR, args))
             except Exception as err:  # any refusal (a bad key, prior.* that do not go together) is the finding
                 return [f"refused: {err}"]
             return []

@@ -1,8 +1,8 @@
 """How far can a cloned actor's weights move before it stops pushing? (docs/notes/results_log.md section 12)
 
 Clones a prior memory's successful actions into a fresh FetchPush TD3 actor, as
-``prior.clone_steps`` does in ``train.py`` (statistics of the prior only,
-``prior_memory.pretrain_actor``), then adds Gaussian noise of standard deviation ``sigma``
+``prior.clone_steps`` does in ``experiments/prior_variants/train.py`` (statistics of the prior only,
+``experiments.prior_variants.pretrain_actor``), then adds Gaussian noise of standard deviation ``sigma``
 to every weight and evaluates the recipe's deterministic policy (100 episodes,
 the run's fixed evaluation goals). For each ``sigma`` it prints the evaluated
 success and the mean absolute change of the deterministic action on the
@@ -25,8 +25,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from experiments.prior_variants import load_demos, pretrain_actor
 from recipes.her import utils
-from recipes.her.prior_memory import load_demos, pretrain_actor
 from torchrl_robotmem import ZarrStorage
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

@@ -29,13 +29,15 @@ from torchrl.checkpoint import Checkpoint
 from recipes.her import utils
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-RECIPE_DIR = os.path.join(ROOT, "recipes", "her")  # config.yaml and its groups
+# recipes/her's config with the prior-memory variants' keys (variants.yaml): the overrides of any run of
+# recipes/her or experiments.prior_variants compose
+CONFIG_DIR = os.path.join(ROOT, "experiments", "prior_variants")
 
 
 def failures(checkpoint: str, overrides: list[str]) -> dict:
     """Success rate and failure categories of the deterministic evaluation of ``checkpoint``."""
-    with initialize_config_dir(config_dir=RECIPE_DIR, version_base="1.3"):
-        cfg = compose("config", overrides=["logger.eval_episodes=100", *overrides])
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("variants", overrides=["logger.eval_episodes=100", *overrides])
     torch.set_num_threads(cfg.num_threads)
     train_env, eval_env = utils.make_environment(cfg)
     normalizer = utils.GoalNormalizer()

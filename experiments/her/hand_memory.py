@@ -8,7 +8,7 @@ Three measurements on the memory a ``recipes/her/train.py env=hand_reach`` run w
 * ``clone``: hindsight inverse dynamics: an MLP regresses the stored action ``a_t`` on
   ``(o_t, ag_{t+k})``, ``0 <= k < horizon`` within the episode, over every row, then acts
   on ``(o, desired_goal)``; evaluated on 100 deterministic episodes (the same goals as ``cover``).
-  ``prior.clone_goals=hindsight`` does the same inside the recipe.
+  ``prior.clone_goals=hindsight`` does the same in ``experiments.prior_variants.train``.
 * ``gcsl``: ``clone``, then rounds of 100 episodes collected with the clone plus Gaussian noise,
   added to the data, and cloned again (goal-conditioned supervised learning, Ghosh et al. 2019).
 
@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from recipes.her.prior_memory.hindsight import numbered_episodes
+from experiments.prior_variants.hindsight import numbered_episodes
 from recipes.her.tools.compare import load_run
 from torchrl_robotmem import ZarrStorage, recall
 

@@ -1,6 +1,7 @@
 """The prior-memory experiments of docs/results.md (docs/notes/results_log.md sections 8-15), as one resumable queue.
 
-Every run is ``recipes/her/train.py`` with 60k new env frames, 100 deterministic
+Every run is ``python -m experiments.prior_variants.train`` (recipes/her/train.py with the prior-memory
+variants: ``prior=bc|clone``, ``prior.clone_anchor``, ...) with 60k new env frames, 100 deterministic
 evaluation episodes every 2500 frames and ``collector.resume=true``: launching
 this script again (next session, after a kill) continues each stopped run from
 its last evaluation and skips finished ones. ``--jobs`` runs go at a time
@@ -31,8 +32,9 @@ import subprocess
 import sys
 import time
 
-#: the recipe every run trains with
-RECIPE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "recipes", "her")
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+#: what every run trains with: the recipe and the prior-memory variants, run from ROOT
+TRAIN = [sys.executable, "-m", "experiments.prior_variants.train"]
 PUSH_PRIOR = "bench_results/prior/scripted-push-500.zarr"
 PUSH_PRIOR_CLEAN = "bench_results/prior/scripted-push-500-n0.zarr"  # default parameters: 96.6% success
 PNP_PRIOR = "bench_results/prior/scripted-pnp-500.zarr"
@@ -49,7 +51,7 @@ UTD2 = ["optim.utd_ratio=2", "optim.batch_size=256", "network.critic_layer_norm=
 # the Q-filtered BC term (prior=bc: TD3+BC's weight 0.4); evaluated every 2500 frames to 20k without the 0.9
 # stop, to see whether RL keeps it
 CLONE = ["prior=bc", "prior.clone_steps=4000"]
-# the clone kept by a trust region (prior_memory.CloneAnchor) with TD3's own actor loss and the start's statistics
+# the clone kept by a trust region (prior_variants.CloneAnchor) with TD3's own actor loss and the start's statistics
 ANCHOR = ["prior=mix", "prior.clone_steps=4000", "collector.init_random_frames=0", "prior.freeze_normalizer=true"]
 
 
@@ -77,7 +79,7 @@ def _runs() -> dict[str, list[str]]:
         # smaller actor learning rate, to 60k frames without the 0.9 stop
         runs[f"keep-push-s{seed}"] = [o for o in runs[f"clonetd3og-push-s{seed}"] if not o.startswith("collector.total")]
         runs[f"keep-push-s{seed}"] += ["prior.freeze_normalizer=true", "prior.actor_lr=1e-5"]
-        # the cloned actor trained by critic-regularised regression (prior_memory.CRRActorLoss): no action
+        # the cloned actor trained by critic-regularised regression (prior_variants.CRRActorLoss): no action
         # gradient, so no offset from the data; frozen normaliser statistics; no extra BC term (prior=clone)
         runs[f"crr-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", "prior=clone",
                                      f"prior.paths=[{PUSH_PRIOR_CLEAN}]", "collector.init_random_frames=0",
@@ -85,7 +87,7 @@ def _runs() -> dict[str, list[str]]:
         # ... with a quarter of TD3's exploration noise (0.05): the regression targets of the run's own rows are
         # the clone's actions plus that noise, which the actor fits
         runs[f"crrlow-push-s{seed}"] = [*runs[f"crr-push-s{seed}"], "algo.exploration_noise=0.05"]
-        # a trust region around the clone's own outputs on every batch state (prior_memory.CloneAnchor), with
+        # a trust region around the clone's own outputs on every batch state (prior_variants.CloneAnchor), with
         # TD3's own actor loss: the actions move by about grad_a Q / (2 w mean|Q|); to 20k frames without the 0.9 stop
         runs[f"anchor-push-s{seed}"] = ["env=push", "algo=td3", f"seed={seed}", f"prior.paths=[{PUSH_PRIOR_CLEAN}]",
                                         *ANCHOR, "prior.clone_anchor=10",
@@ -124,11 +126,10 @@ RUNS = _runs()
 
 def command(name: str, root: str) -> list[str]:
     """The ``train.py`` command line of run ``name``."""
-    train = os.path.join(RECIPE_DIR, "train.py")
-    memory = os.path.join(root, f"{name}.zarr")
+    memory = os.path.abspath(os.path.join(root, f"{name}.zarr"))
     own = {o.split("=", 1)[0] for o in RUNS[name]}
     common = [o for o in COMMON if o.split("=", 1)[0] not in own]  # a run's own settings win
-    return [sys.executable, train, *RUNS[name], *common, f"memory.path={memory}", f"hydra.run.dir={os.path.join(root, name)}"]
+    return [*TRAIN, *RUNS[name], *common, f"memory.path={memory}", f"hydra.run.dir={os.path.abspath(os.path.join(root, name))}"]
 
 
 def state(name: str, root: str) -> str:
@@ -173,7 +174,7 @@ def main(argv: list[str] | None = None) -> None:
             log = open(os.path.join(args.root, f"{name}.log"), "a")
             print(f"[{time.strftime('%H:%M:%S')}] start {name} ({state(name, args.root)})", flush=True)
             running[name] = subprocess.Popen(["nice", "-n", str(args.nice), *command(name, args.root)],
-                                             stdout=log, stderr=subprocess.STDOUT)
+                                             stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
         time.sleep(10)
         for name, proc in list(running.items()):
             if proc.poll() is not None:

@@ -39,8 +39,8 @@ from torchrl.data import RandomSampler, TensorDictReplayBuffer
 from torchrl.envs import RewardSum
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from experiments.prior_variants.bc import CRRActorLoss
 from experiments.residual.agent import AGENT_INPUTS, make_agent, make_loss, make_optimizers
-from recipes.her.prior_memory.bc import CRRActorLoss
 from recipes.her.run_record import CpuClock, first_reach, record_episodes
 from recipes.her.utils import GoalNormalizer, evaluate, make_logger, make_storage, mean_losses
 from torchrl_robotmem import make_env

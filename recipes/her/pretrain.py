@@ -10,7 +10,8 @@ check reaches ``memory.pretrain_target`` (``logger.target_success`` when null),
 or when ``memory.pretrain_patience`` checks in a row did not beat the best one.
 The run's evaluation at frame 0 is a full evaluation made after it stopped.
 
-``train.py`` imports it as ``pretrain``; like ``utils.py`` it imports no sibling.
+``train.py`` imports it as ``pretrain``; like ``utils.py`` it imports no sibling
+(:func:`pretrain_on_memory` is given the check env's builder and the run's CPU clock).
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from collections.abc import Callable
 
 import tqdm
 
-__all__ = ["pretrain"]
+__all__ = ["pretrain", "pretrain_on_memory"]
 
 
 def pretrain(
@@ -97,3 +98,40 @@ def pretrain(
             if actor_fixed and stopped == "patience":  # one look after, whatever it says
                 stopped = None
     return result(done, stopped or "max")
+
+
+def pretrain_on_memory(cfg, step: Callable[[], object], full_eval: Callable[..., dict],
+                       make_check_env: Callable[[int], object], cpu, logger=None, actor_fixed: bool = False) -> dict:
+    """``memory.pretrain_*``: updates on the memory until a check reaches the target, a plateau or the maximum.
+
+    The checks run ``memory.pretrain_eval_episodes`` episodes (at most ``logger.eval_episodes``) on
+    held-out goals: ``make_check_env(episodes)`` builds their env (``utils.make_eval_env(...,
+    held_out=True)``, a seed range disjoint from the evaluation's), so when pretraining stops is never
+    chosen on the goals the run is evaluated on. ``full_eval(env, held_out=...)`` evaluates the actor;
+    ``full_eval()`` is the run's evaluation, done once after pretraining stops and returned in
+    ``"metrics"`` (the run's evaluation at frame 0): reported, never looked at to stop.
+
+    Returns:
+        :func:`pretrain`'s dict, with ``"metrics"``.
+    """
+    mem = cfg.memory
+    episodes = min(mem.pretrain_eval_episodes or cfg.logger.eval_episodes, cfg.logger.eval_episodes)
+    target = mem.pretrain_target if mem.pretrain_target is not None else cfg.logger.target_success
+    with cpu.evaluating():
+        check_env = make_check_env(episodes)
+
+    def on_check(updates: int, metrics: dict) -> None:
+        if logger is not None:
+            logger.log_metrics({"pretrain/success_rate": metrics["eval/success_rate"]}, updates)
+
+    out = pretrain(step, lambda: full_eval(check_env, held_out=True), mem.pretrain_updates, mem.pretrain_eval_every,
+                   target=target, patience=mem.pretrain_patience, actor_fixed=actor_fixed, on_check=on_check)
+    check_env.close()
+    out["metrics"] = full_eval()
+    why = {"target": f"the target {target}", "patience": f"a plateau ({mem.pretrain_patience} checks without a "
+           "better success)", "max": "the maximum"}[out["stopped"]]
+    print(f"pretraining on the memory: {out['updates']} of at most {mem.pretrain_updates} updates, stopped at {why}; "
+          f"success at each check ({episodes} held-out episodes, every {mem.pretrain_eval_every or mem.pretrain_updates} "
+          f"updates): {', '.join(f'{u}: {x:.2f}' for u, x in out['checks'])}; evaluation after it: "
+          f"{out['metrics']['eval/success_rate']:.2f}")
+    return out

@@ -118,6 +118,13 @@ class CpuClock:
         self._eval = float(eval_offset)
         self._process_offset = float(process_offset)
 
+    @classmethod
+    def resumed(cls, progress: dict | None) -> CpuClock:
+        """A clock that carries on the seconds of :func:`run_progress`'s ``progress`` (``None``: from zero)."""
+        if not progress:
+            return cls()
+        return cls(progress["cpu_s"], progress.get("eval_cpu_s", 0.0), progress.get("process_cpu_s", 0.0))
+
     @contextlib.contextmanager
     def paused(self):
         t0 = time.process_time()

@@ -1,36 +1,14 @@
 """SAC / TD3 / DDPG + HER on Fetch and Shadow Hand, over a persistent memory.
 
-The loop of TorchRL's ``sota-implementations/sac/sac.py`` (collect, extend,
-update, log, evaluate), with these changes:
-
-* the replay buffer is a :class:`~torchrl.data.HERReplayBuffer` over a
-  :class:`~torchrl_robotmem.ZarrStorage` at ``memory.path``: transitions outlive
-  the run, and the next run with the same path continues on them;
-* a run that starts fresh networks on a non-empty memory first learns from it,
-  before collecting anything: ``memory.pretrain_updates`` updates at most,
-  checked every ``memory.pretrain_eval_every`` and stopped at the target success
-  or a plateau (``pretrain.py``);
-* optionally, :class:`~torchrl_robotmem.GoalSimilaritySampler` draws rows near
-  the goals being chased now, and :class:`~torchrl_robotmem.RecallTransform`
-  shows actor and critic the remembered goals nearest to their goal;
-* ``prior=mix|bc|clone 'prior.paths=[path, ...]'``: read-only memories of other
-  runs, tasks or scripted controllers, sampled beside the run's own buffer, and
-  what the actor learns from them (``prior_memory/``: ``PriorMix`` samples,
-  ``PriorTerms`` adds its loss terms to the update). Each prior's keys, shapes and
-  dtypes are checked against this task before the run's memory is opened
-  (float64 columns are cast to float32, the rest refused) and its rows,
-  episodes and success rate printed and kept in the run's summary.
-
-The agent (networks, optimiser, normaliser) is saved next to the memory at every
-evaluation, with the run's progress (frames, curve, CPU time) in the
-checkpoint's metadata: ``collector.resume=true`` continues a run that was
-stopped (killed, out of time) from its last evaluation, on the same memory.
-The run ends with its frames and CPU-seconds (the whole process: training,
-evaluation and the rest), printed and kept in its summary.
+The loop of TorchRL's ``sota-implementations/sac/sac.py`` (collect, extend, update, log, evaluate). The replay
+buffer is a :class:`~torchrl.data.HERReplayBuffer` over a :class:`~torchrl_robotmem.ZarrStorage` at
+``memory.path``: the next run on the same path continues on it, fresh networks first learning from it
+(``pretrain.py``); ``prior=mix 'prior.paths=[...]'`` samples read-only memories beside it (``prior_memory/``).
+The agent and the run's progress are saved at every evaluation (``collector.resume=true`` continues a stopped
+run); the run ends with its frames and CPU-seconds (``run_record.py``). recipes/README.md has every option.
 
     python recipes/her/train.py                        # SAC, FetchReach-v4
     python recipes/her/train.py algo=td3 env=push seed=1
-    python recipes/her/train.py replay_buffer.storage._target_=torchrl.data.LazyTensorStorage
     python recipes/her/train.py env=push prior=mix 'prior.paths=[memory/scripted/push.zarr]'
     python recipes/her/train.py env=push collector.total_frames=60000 collector.resume=true  # again after a kill
 """
@@ -45,8 +23,8 @@ import torch
 import tqdm
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig
-from pretrain import pretrain
-from prior_memory import check_prior_config, check_prior_memories, make_prior_mix, make_prior_terms, step_schedules
+from pretrain import pretrain_on_memory
+from prior_memory import check_prior_config, check_prior_memories, make_prior_mix, prior_ratio
 from run_record import (
     CpuClock,
     finish_run,
@@ -59,7 +37,7 @@ from run_record import (
 from targets import clip_targets
 from tensordict import TensorDictBase
 from torchrl.checkpoint import Checkpoint
-from update import Updater, compile_settings, draw_batches
+from update import LossTerms, Updater, compile_settings, draw_batches
 from utils import (
     RECALL_KEYS,
     GoalNormalizer,
@@ -82,6 +60,7 @@ from utils import (
     mean_losses,
     memory_device,
     refresh_recall,
+    start_normalizer,
     to_device,
     train_device,
 )
@@ -105,72 +84,55 @@ def main(cfg: DictConfig) -> None:
     history = read_history(history_path)
     logger = make_logger(cfg)
 
-    # Prior memories (read-only): checked against this task (keys, shapes, dtypes) and summarised
-    # before the run's own memory is opened
+    # Prior memories (read-only): checked against this task (keys, shapes, dtypes) and summarised first
     priors = make_prior_buffers(cfg, device=memory_device(cfg))
     prior_dtypes, prior_summaries = check_prior_memories(cfg, priors)
 
-    # Create the memory: storage, optional goal sampler, HER on top
-    # every draw names its size (a batch, a part-batch beside prior memories, or all the batches of an update round
-    # at once): no default size, which TorchRL would warn about on each draw of another size
+    # Create the memory: storage, optional goal sampler, HER on top (every draw names its size)
     replay_buffer = make_replay_buffer(cfg, make_storage(cfg, memory_path, device=memory_device(cfg)), make_sampler(cfg),
                                        batch_size=None)
     goal_sampler = replay_buffer.sampler if cfg.replay_buffer.sampler.enabled else None
     remembered = len(replay_buffer)
 
-    # Create environments (the recall transform reads the same memory, live)
+    # Create environments (the recall transform and the goal proposer read the same memory, live)
     train_env, eval_env = make_environment(cfg, memory=replay_buffer.storage)
     recall = train_env.transform[-1] if cfg.memory.recall.enabled else None
     proposer = next((t for t in train_env.transform if isinstance(t, GoalProposer)), None)
+    mix = make_prior_mix(cfg, replay_buffer, priors, dtypes=prior_dtypes)  # priors sampled beside the run's buffer
 
-    # Prior memories sampled beside the run's own buffer (floating columns cast to this run's dtypes)
-    mix = make_prior_mix(cfg, replay_buffer, priors, dtypes=prior_dtypes)
-
-    # Create agent, loss (with the prior-memory terms), optimiser
+    # Create agent, loss, optimiser
     normalizer = GoalNormalizer(device=device)
     model, exploration_policy = make_agent(cfg, train_env, normalizer)
     fast = compile_settings(cfg, device)  # compile.*: torch.compile and CUDA graphs for the update
     loss_module, target_net_updater = make_loss_module(cfg, model, compiled=fast["compile"])
     clip_targets(loss_module, cfg.optim.get("target_clip"), cfg.optim.gamma)  # HER's clip_return (targets.py)
     optimizer = make_optimizer(cfg, loss_module, capturable=fast["cudagraphs"])
-    terms = make_prior_terms(cfg, loss_module, loss_keys(cfg), priors, dtypes=prior_dtypes)
     checkpoint = Checkpoint(loss_module=loss_module, optimizer=optimizer, normalizer=normalizer)
-    if terms.anchor is not None:  # the cloned actor's outputs, saved with the agent
-        checkpoint.register("clone_anchor", terms.anchor)
+
+    # A stopped run resumes (collector.resume); fresh networks take the memory's and priors' statistics
     recover_checkpoint(checkpoint_path)  # a save a kill interrupted leaves only its backup
-    progress = run_progress(cfg, checkpoint_path, remembered)  # collector.resume: where the run stopped
+    progress = run_progress(cfg, checkpoint_path, remembered)
     resumed = (cfg.memory.resume_agent or progress is not None) and Checkpoint.is_checkpoint(checkpoint_path)
     if resumed:
         load_agent(checkpoint, checkpoint_path)
-    elif remembered:
-        normalizer.update(replay_buffer[:])  # fresh networks: statistics of the whole memory
+    start_normalizer(normalizer, replay_buffer, progress, resumed, mix)
     if progress is not None:
         remembered = progress["memory_rows_before"]
-        if len(replay_buffer) > progress["memory_rows"] and not cfg.prior.freeze_normalizer:
-            normalizer.update(replay_buffer.storage[progress["memory_rows"]:len(replay_buffer)])  # after the checkpoint
-    if mix is not None and not resumed:
-        for rows in mix.prior_rows():
-            normalizer.update(rows)
 
-    # One gradient step (``critic_only``: the actor and its prior terms sit it out); TD3 moves its actor and
-    # targets every policy_update_delay-th step. Eager, or compiled / CUDA-graphed (compile.*)
-    update = Updater(terms, optimizer, target_net_updater,
+    # One gradient step; TD3 moves its actor and targets every policy_update_delay-th step. Eager, or
+    # compiled / CUDA-graphed (compile.*)
+    update = Updater(LossTerms(loss_module, loss_keys(cfg)), optimizer, target_net_updater,
                      policy_delay=cfg.algo.policy_update_delay if algo == "TD3" else 1, compile=fast["compile"],
                      compile_mode=fast["mode"], compile_backend=fast["backend"],
                      cudagraphs=fast["cudagraphs"], warmup=fast["warmup"])
     update.num_updates = progress["updates"] if progress else 0
 
-    # frames of this run so far: every row it added to its memory (a resumed run
-    # counts the rows collected after its last checkpoint too)
+    # frames of this run so far: every row it added to its memory (a resumed run counts those after its checkpoint)
     collected_frames = len(replay_buffer) - remembered if progress else 0
-    print(
-        f"{algo}+HER on {cfg.env.name} | memory {memory_path}: {len(replay_buffer)} transitions"
-        + (" | agent resumed from checkpoint" if resumed else "")
-        + (f" | run resumed at {collected_frames} frames" if progress else "")
-    )
-    cpu = CpuClock(offset=progress["cpu_s"] if progress else 0.0,
-                   eval_offset=progress.get("eval_cpu_s", 0.0) if progress else 0.0,
-                   process_offset=progress.get("process_cpu_s", 0.0) if progress else 0.0)
+    print(f"{algo}+HER on {cfg.env.name} | memory {memory_path}: {len(replay_buffer)} transitions"
+          + (" | agent resumed from checkpoint" if resumed else "")
+          + (f" | run resumed at {collected_frames} frames" if progress else ""))
+    cpu = CpuClock.resumed(progress)  # training, evaluation and process CPU-s, carried on from a stopped run
     curve: list[tuple[int, float]] = [tuple(point) for point in progress["curve"]] if progress else []
     if progress:  # other episodes than the first launch's
         torch.manual_seed(cfg.seed + collected_frames)
@@ -185,8 +147,7 @@ def main(cfg: DictConfig) -> None:
                 "env": cfg.env.name, "algo": algo, "seed": cfg.seed, "updates": update.num_updates,
                 "memory_rows_before": remembered, "memory_rows": len(replay_buffer),
                 "frames": collected_frames, "cpu_s": cpu.seconds(), "curve": [list(p) for p in curve],
-                "eval_cpu_s": cpu.evaluation(), "process_cpu_s": cpu.process(),
-                "finished": finished,
+                "eval_cpu_s": cpu.evaluation(), "process_cpu_s": cpu.process(), "finished": finished,
             })
 
     outcomes: list[int] = []  # each episode's success in the last evaluation on eval_env (eval_episodes.jsonl)
@@ -200,9 +161,8 @@ def main(cfg: DictConfig) -> None:
         if outcomes:
             record_episodes(frames, cfg.seed, outcomes)
             outcomes.clear()
-        metrics["time/cpu_s"] = cpu.seconds()
-        metrics["time/eval_cpu_s"] = cpu.evaluation()
-        metrics["train/updates"] = update.num_updates
+        metrics.update({"time/cpu_s": cpu.seconds(), "time/eval_cpu_s": cpu.evaluation(),
+                        "train/updates": update.num_updates})
         curve.append((frames, metrics["eval/success_rate"]))
         if logger is not None:
             logger.log_metrics(metrics, frames)
@@ -221,31 +181,21 @@ def main(cfg: DictConfig) -> None:
             refresh_recall(batch, recall)
         return to_device(batch, device)
 
-    # Fresh networks and a prior memory: clone its actions into the actor first (prior.clone_steps),
-    # then the pretraining updates below evaluate the cloned actor: they do not move it
-    cloned = mix is not None and not resumed and cfg.prior.clone_steps > 0
-    if cloned:
-        bc_mse = terms.clone([b.storage for b in priors], cfg.prior.clone_steps, batch_size=cfg.optim.batch_size,
-                             lr=cfg.optim.lr, seed=cfg.seed)
-        goals = (f"hindsight goals, horizon {cfg.prior.clone_horizon}" if cfg.prior.clone_goals == "hindsight"
-                 else "successful episodes, their own goals")
-        print(f"cloned the prior's actions into the actor: {cfg.prior.clone_steps} steps ({goals}), mse {bc_mse:.4f}")
     # Fresh networks on a memory that already holds transitions: learn from it first, until it has done its job
     pretrained = {"updates": 0, "checks": [], "stopped": None}
     if (remembered or mix is not None) and not resumed and cfg.memory.pretrain_updates:
-        pretrained = pretrain_on_memory(cfg, lambda: update(sample(), critic_only=cloned), full_eval, cloned,
-                                        cpu, logger, replay_buffer.storage)
+        pretrained = pretrain_on_memory(
+            cfg, lambda: update(sample()), full_eval,
+            lambda episodes: make_eval_env(cfg, episodes, replay_buffer.storage, held_out=True), cpu, logger)
         log_eval(0, pretrained["metrics"])
     success = curve[-1][1] if curve else log_eval(0)
     save(finished=False)
 
     # Main loop
     init_random_frames = max(0, cfg.collector.init_random_frames - remembered - collected_frames)
-    collector = make_collector(
-        cfg, train_env, exploration_policy, init_random_frames=init_random_frames,
-        total_frames=max(cfg.collector.total_frames - collected_frames, 1),
-        seed=cfg.seed + collected_frames,
-    )
+    collector = make_collector(cfg, train_env, exploration_policy, init_random_frames=init_random_frames,
+                               total_frames=max(cfg.collector.total_frames - collected_frames, 1),
+                               seed=cfg.seed + collected_frames)
     target = cfg.logger.target_success
     reached_at = first_reach(curve, target)
     done_already = reached_at is not None or collected_frames >= cfg.collector.total_frames
@@ -258,23 +208,23 @@ def main(cfg: DictConfig) -> None:
         # Extend: flat transitions; recalled priors are recomputed at sampling
         data = data.reshape(-1).exclude(*RECALL_KEYS, *[("next", k) for k in RECALL_KEYS])
         replay_buffer.extend(data)
-        if not cfg.prior.freeze_normalizer:
-            normalizer.update(data)
+        normalizer.update(data)
         frames = data.numel()
         collected_frames += frames
         pbar.update(frames)
 
-        # Update (prior.actor_freeze_frames: the critics learn the actor's returns first)
-        metrics = step_schedules(cfg, collected_frames, mix, terms.anchor)
+        # Update: the batches of a step drawn together (optim.batches_per_draw), near the goals chased now
+        metrics = {}
+        if mix is not None:  # prior.ratio_final: the prior's share of a batch anneals
+            mix.ratio = metrics["train/prior_ratio"] = prior_ratio(cfg, collected_frames)
         if collected_frames >= init_random_frames:
-            critic_only = collected_frames <= cfg.prior.actor_freeze_frames
             n = max(1, int(frames * cfg.optim.utd_ratio))
             losses = []  # kept on the device until the step's end: no host sync an update
             query = current_goals(collector, data) if goal_sampler is not None else None
-            group = max(1, cfg.optim.batches_per_draw)  # the n batches drawn in groups (update.draw_batches)
+            group = max(1, cfg.optim.batches_per_draw)
             for first in range(0, n, group):
                 batches = draw_batches(functools.partial(sample, query=query), min(group, n - first), cfg.optim.batch_size)
-                losses += [update(batch, critic_only) for batch in batches]
+                losses += [update(batch) for batch in batches]
             metrics.update(mean_losses(torch.stack(losses)))
             if algo == "SAC":
                 metrics["train/alpha"] = loss_module.log_alpha.exp().item()
@@ -287,7 +237,6 @@ def main(cfg: DictConfig) -> None:
             metrics["train/success_rate"] = data["next", "is_success"][done].float().mean().item()
         if logger is not None and metrics:
             logger.log_metrics(metrics, collected_frames)
-
         loop["frames"] += frames
         loop["wall_s"] += time.perf_counter() - tick
 
@@ -329,36 +278,6 @@ def main(cfg: DictConfig) -> None:
             env.close()
     finish_run(cfg, history, history_path, summary, clock=cpu)
 
-
-def pretrain_on_memory(cfg: DictConfig, step, full_eval, actor_fixed: bool, cpu: CpuClock, logger, memory) -> dict:
-    """``memory.pretrain_*``: updates on the memory until a check reaches the target, a plateau or the maximum.
-
-    The checks run ``memory.pretrain_eval_episodes`` episodes on held-out goals (a seed range disjoint
-    from the evaluation's: ``utils.eval_seed``), so when pretraining stops is never chosen on the goals the
-    run is evaluated on. The full evaluation after it stops is returned in ``"metrics"`` (the run's
-    evaluation at frame 0): reported, never looked at to stop.
-    """
-    mem = cfg.memory
-    episodes = min(mem.pretrain_eval_episodes or cfg.logger.eval_episodes, cfg.logger.eval_episodes)  # <= an evaluation
-    target = mem.pretrain_target if mem.pretrain_target is not None else cfg.logger.target_success
-    with cpu.evaluating():
-        check_env = make_eval_env(cfg, episodes, memory, held_out=True)
-
-    def on_check(updates: int, metrics: dict) -> None:
-        if logger is not None:
-            logger.log_metrics({"pretrain/success_rate": metrics["eval/success_rate"]}, updates)
-
-    out = pretrain(step, lambda: full_eval(check_env, held_out=True), mem.pretrain_updates, mem.pretrain_eval_every,
-                   target=target, patience=mem.pretrain_patience, actor_fixed=actor_fixed, on_check=on_check)
-    check_env.close()
-    out["metrics"] = full_eval()
-    why = {"target": f"the target {target}", "patience": f"a plateau ({mem.pretrain_patience} checks without a "
-           "better success)", "max": "the maximum"}[out["stopped"]]
-    print(f"pretraining on the memory: {out['updates']} of at most {mem.pretrain_updates} updates, stopped at {why}; "
-          f"success at each check ({episodes} held-out episodes, every {mem.pretrain_eval_every or mem.pretrain_updates} "
-          f"updates): {', '.join(f'{u}: {x:.2f}' for u, x in out['checks'])}; evaluation after it: "
-          f"{out['metrics']['eval/success_rate']:.2f}")
-    return out
 
 if __name__ == "__main__":
     main()

@@ -5,8 +5,8 @@ function in the script and wrap it in ``torch.compile`` (``compile.compile``)
 and ``tensordict.nn.CudaGraphModule`` (``compile.cudagraphs``). :class:`Updater`
 does the same for this recipe's update, whose shape changes between calls in
 two ways a captured graph cannot follow: whether the actor trains (TD3's delayed
-updates, the critic-only steps of ``prior.actor_freeze_frames`` and of
-pretraining after a clone) and whether the target networks move. Each of the
+updates; the critic-only steps of ``experiments/prior_variants``) and whether the
+target networks move. Each of the
 (at most four) variants is its own compiled / captured function, built on first
 use.
 
@@ -23,7 +23,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["Updater", "compile_settings", "draw_batches"]
+__all__ = ["LossTerms", "Updater", "compile_settings", "draw_batches"]
 
 
 def compile_settings(cfg, device: torch.device) -> dict:
@@ -59,6 +59,37 @@ def compile_settings(cfg, device: torch.device) -> dict:
             "backend": node.get("backend") or "inductor"}
 
 
+class LossTerms:
+    """What an update minimises: the algorithm's loss terms, or the critics' alone.
+
+    :meth:`loss` returns the terms ``keys`` of the loss module for a batch;
+    :meth:`total` sums those an update trains: all of them, or the critics'
+    (``keys[1]``) on a step that leaves the actor alone. :class:`Updater` asks
+    any object with these two methods (``experiments/prior_variants`` adds its
+    prior-memory terms that way).
+
+    Args:
+        loss_module: the run's SAC / TD3 / DDPG loss.
+        keys (tuple): its terms, the actor's first, then the critics' (``utils.loss_keys``).
+
+    Example:
+        >>> terms = LossTerms(loss_module, ("loss_actor", "loss_qvalue", "loss_alpha"))
+        >>> loss_td = terms.loss(batch)
+        >>> terms.total(loss_td).backward()
+    """
+
+    def __init__(self, loss_module, keys: tuple) -> None:
+        self.loss_module, self.keys = loss_module, tuple(keys)
+
+    def loss(self, batch: TensorDictBase, train_actor: bool = True) -> TensorDictBase:
+        """The algorithm's terms (``keys``) for one batch."""
+        return self.loss_module(batch).select(*self.keys)
+
+    def total(self, loss_td: TensorDictBase, train_actor: bool = True) -> torch.Tensor:
+        """What an update minimises: every term, or the critics' alone when ``train_actor`` is False."""
+        return sum(loss_td[k] for k in (self.keys if train_actor else self.keys[1:2]))
+
+
 class Updater:
     """One gradient step of the HER recipe, eager, compiled (``torch.compile``) or captured in CUDA graphs.
 
@@ -70,7 +101,7 @@ class Updater:
 
     Args:
         terms: what the update minimises, with ``loss(batch, train_actor)`` and
-            ``total(loss_td, train_actor)`` (the recipe's ``prior_memory.PriorTerms``).
+            ``total(loss_td, train_actor)`` (:class:`LossTerms`).
         optimizer: one optimiser over every trained parameter (``group_optimizers``).
         target_updater: a ``torchrl.objectives.SoftUpdate`` / ``HardUpdate``.
 

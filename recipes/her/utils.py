@@ -3,7 +3,7 @@
 Laid out as TorchRL's ``sota-implementations/{sac,td3,ddpg}/utils.py``; the
 memory parts (storage, sampler, recall transform) are built from the
 ``_target_`` entries of ``config.yaml``. The prior-memory parts are in
-``prior_memory/``. This module imports no sibling: ``train.py`` imports it as
+``prior_memory/``; the pretraining on a stored memory in ``pretrain.py``. This module imports no sibling: ``train.py`` imports it as
 ``utils`` (a script's own directory is on ``sys.path``), the tools as
 ``recipes.her.utils``. What a run keeps of itself (CPU clock, progress for
 ``collector.resume``, history, summary, plot) is in ``run_record.py``.
@@ -321,6 +321,23 @@ def make_collector(
     return collector
 
 
+def start_normalizer(normalizer: GoalNormalizer, replay_buffer, progress: dict | None, resumed: bool,
+                     mix=None) -> None:
+    """The normaliser's statistics at a run's start.
+
+    Fresh networks take those of the whole memory and of the prior memories (``mix``); a
+    resumed agent has its own from the checkpoint, and a resumed run (``progress``) adds
+    the rows collected after the checkpoint was written.
+    """
+    if not resumed and len(replay_buffer):
+        normalizer.update(replay_buffer[:])
+    if progress is not None and len(replay_buffer) > progress["memory_rows"]:
+        normalizer.update(replay_buffer.storage[progress["memory_rows"]:len(replay_buffer)])
+    if mix is not None and not resumed:
+        for rows in mix.prior_rows():
+            normalizer.update(rows)
+
+
 def load_agent(checkpoint: Checkpoint, path: str) -> None:
     """Restores the agent saved at ``path``, or says which settings it was saved with."""
     try:
@@ -578,11 +595,10 @@ def make_loss_module(cfg: DictConfig, model, compiled: bool = False):
     return loss, SoftUpdate(loss, eps=cfg.optim.target_update_polyak)
 
 
-def make_optimizer(cfg: DictConfig, loss_module, capturable: bool = False):
-    """One Adam per parameter group (actor, critic, and SAC's entropy), grouped.
+def make_optimizer(cfg: DictConfig, loss_module, capturable: bool = False, actor_lr: float | None = None):
+    """One Adam per parameter group (actor, critic, and SAC's entropy), grouped, at ``optim.lr``.
 
-    The actor's learning rate is ``prior.actor_lr`` where set, else ``optim.lr`` (even
-    1e-5 did not keep a cloned FetchPush actor, docs/notes/results_log.md section 12).
+    ``actor_lr``: the actor's own learning rate instead (``experiments/prior_variants``' ``prior.actor_lr``).
     ``capturable``: the optimisers' state on the device, as a CUDA-graphed update needs.
     """
     critic = loss_module.qvalue_network_params if hasattr(loss_module, "qvalue_network_params") \
@@ -594,7 +610,7 @@ def make_optimizer(cfg: DictConfig, loss_module, capturable: bool = False):
     kw = dict(weight_decay=cfg.optim.weight_decay, eps=cfg.optim.adam_eps)
     if capturable:
         kw["capturable"] = True
-    actor_lr = cfg.prior.actor_lr or cfg.optim.lr
+    actor_lr = actor_lr or cfg.optim.lr
     optimizers = [optim.Adam(g, lr=lr, **kw) for g, lr in zip(groups, (actor_lr, cfg.optim.lr))]
     if cfg.algo.name == "SAC":
         optimizers.append(optim.Adam([loss_module.log_alpha], lr=cfg.optim.lr, **({"capturable": True} if capturable else {})))
@@ -612,9 +628,9 @@ def loss_keys(cfg: DictConfig) -> tuple[str, ...]:
 def mean_losses(losses: TensorDictBase) -> dict[str, float]:
     """``train/<key>`` means of a batch of update records, NaN entries left out.
 
-    Actor-side terms (``loss_bc``, ``bc_kept``, ``crr_kept``) are recorded as NaN on
-    the updates that do not train the actor (TD3's delayed steps, critic-only
-    pretraining), so their means are over the actor's updates alone; a key with
+    Actor-side terms (those of ``experiments/prior_variants``: ``loss_bc``, ``crr_kept``, ...)
+    are recorded as NaN on the updates that do not train the actor (TD3's delayed steps,
+    critic-only steps), so their means are over the actor's updates alone; a key with
     no value in the batch is not logged.
     """
     means = {}

@@ -64,9 +64,8 @@ def test_a_float64_prior_is_cast_summarised_and_trained_on(tmp_path):
     rows = raw_gym_rows()
     assert rows["observation"].dtype == torch.float64 and rows["next", "desired_goal"].dtype == torch.float64
     prior = write_memory(tmp_path / "raw-gym.zarr", rows)
-    # prior.clone_steps: the rows cloned into the actor (load_demos) are cast too; pretraining is then critic-only
-    proc = recipe(tmp_path, f"memory.path={tmp_path / 'own.zarr'}", "prior=mix", f"prior.paths=[{prior}]",
-                  "prior.clone_steps=3")
+    # (the rows cloned into the actor are cast too: tests/studies/test_prior_variants.py)
+    proc = recipe(tmp_path, f"memory.path={tmp_path / 'own.zarr'}", "prior=mix", f"prior.paths=[{prior}]")
     s = summary_of(tmp_path, proc)
     assert s["frames"] == 50 and s["updates"] > 0
     casts = [line for line in proc.stdout.splitlines() if "cast to torch.float32" in line]

@@ -23,8 +23,7 @@ if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 
 from recipes.her import utils  # noqa: E402
-from recipes.her.prior_memory import PriorTerms  # noqa: E402
-from recipes.her.update import Updater, compile_settings, draw_batches  # noqa: E402
+from recipes.her.update import LossTerms, Updater, compile_settings, draw_batches  # noqa: E402
 
 
 def _cfg(*overrides: str):
@@ -41,7 +40,7 @@ def _agent(cfg, env, data, seed: int = 0, compiled: bool = False):
     model, _ = utils.make_agent(cfg, env, normalizer)
     loss, target = utils.make_loss_module(cfg, model, compiled=compiled)
     optimizer = utils.make_optimizer(cfg, loss)
-    return loss, PriorTerms(loss, utils.loss_keys(cfg)), optimizer, target
+    return loss, LossTerms(loss, utils.loss_keys(cfg)), optimizer, target
 
 
 @pytest.fixture(scope="module")

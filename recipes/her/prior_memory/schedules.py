@@ -1,9 +1,9 @@
-"""The prior share of a batch and the anchor's weight, as functions of the run's new env frames."""
+"""The prior's share of a batch, as a function of the run's new env frames (``prior.ratio_final``)."""
 from __future__ import annotations
 
 from omegaconf import DictConfig
 
-__all__ = ["clone_anchor_weight", "prior_ratio"]
+__all__ = ["prior_ratio"]
 
 
 def prior_ratio(cfg: DictConfig, frames: int) -> float:
@@ -25,28 +25,3 @@ def prior_ratio(cfg: DictConfig, frames: int) -> float:
         return float(start)
     t = min(1.0, frames / horizon)
     return float(start + t * (final - start))
-
-
-def clone_anchor_weight(cfg: DictConfig, frames: int) -> float:
-    """``w`` of ``prior.clone_anchor`` after ``frames`` new env frames.
-
-    ``prior.clone_anchor`` throughout, or, with ``prior.clone_anchor_final`` set,
-    geometric from ``clone_anchor`` to ``clone_anchor_final`` over
-    ``prior.clone_anchor_anneal_frames`` (the trust region's radius, about
-    ``1 / w``, then widens by the same factor every frame), constant after.
-
-    Example:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"prior": {"clone_anchor": 100.0, "clone_anchor_final": 1.0,
-        ...                                   "clone_anchor_anneal_frames": 1000}})
-        >>> round(clone_anchor_weight(cfg, 500), 6)
-        10.0
-    """
-    start = float(cfg.prior.clone_anchor)
-    final = cfg.prior.get("clone_anchor_final")  # absent or null: no schedule
-    if final is None or cfg.prior.clone_anchor_anneal_frames <= 0:
-        return start
-    if not final > 0:
-        raise ValueError(f"prior.clone_anchor_final must be > 0 (the anchor's last weight), got {final}.")
-    t = min(1.0, frames / cfg.prior.clone_anchor_anneal_frames)
-    return float(start * (float(final) / start) ** t)

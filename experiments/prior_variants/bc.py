@@ -1,7 +1,7 @@
 """Behaviour cloning of prior rows: the Q-filtered BC term, CRR, and cloning before any RL update.
 
 ``prior.bc=w`` (:class:`PriorBC`, Nair et al., 2018) adds to the actor's loss,
-for the rows of each batch that came from a prior memory (:class:`~.mix.PriorMix`
+for the rows of each batch that came from a prior memory (:class:`recipes.her.prior_memory.PriorMix`
 marks them ``from_prior``), the squared distance between the actor's
 deterministic action and the stored action::
 
@@ -33,10 +33,11 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
+from recipes.her.prior_memory.layout import cast_rows
+from recipes.her.prior_memory.mix import PRIOR_KEY
+
 from .actor_critic import ActorCritic, loss_device
 from .hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, numbered_episodes
-from .layout import cast_rows
-from .mix import PRIOR_KEY
 
 __all__ = ["CRRActorLoss", "PriorBC", "load_demos", "pretrain_actor"]
 

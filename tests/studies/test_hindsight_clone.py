@@ -1,7 +1,8 @@
-"""recipes/her prior.clone_goals=hindsight (issue 27): cloning every prior row towards what its episode achieved.
+"""prior.clone_goals=hindsight (issue 27; experiments/prior_variants): cloning every prior row towards what its
+episode achieved.
 
-Real parts: FetchReach episodes from TorchRL's GymEnv written to real ZarrStorages, the
-recipe's own load_demos / HindsightGoals on them, and the recipe run as a subprocess.
+Real parts: FetchReach episodes from TorchRL's GymEnv written to real ZarrStorages, load_demos /
+HindsightGoals on them, and ``python -m experiments.prior_variants.train`` run as a subprocess.
 """
 from __future__ import annotations
 
@@ -12,13 +13,21 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
+from training.test_her_priors_and_pretraining import raw_gym_rows, summary_of, write_memory
 
-from training.test_her_priors_and_pretraining import raw_gym_rows, recipe, summary_of, write_memory
+from studies.test_prior_variants import VARIANTS_DIR
+from studies.test_prior_variants import variants as recipe
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from recipes.her.prior_memory.hindsight import ACHIEVED_KEY, EPISODE_KEY, HindsightGoals, episode_ids, numbered_episodes  # noqa: E402
+from experiments.prior_variants.hindsight import (  # noqa: E402
+    ACHIEVED_KEY,
+    EPISODE_KEY,
+    HindsightGoals,
+    episode_ids,
+    numbered_episodes,
+)
 
 SEED = int(os.environ.get("ROBOTMEM_TEST_SEED", "0"))
 
@@ -82,8 +91,8 @@ def test_load_demos_keeps_every_row_with_episodes_unique_across_memories(tmp_pat
     """Two real memories: all their rows (not only successful episodes), episode numbers that do not collide."""
     from hydra import compose, initialize_config_dir
 
+    from experiments.prior_variants.bc import load_demos
     from recipes.her import utils
-    from recipes.her.prior_memory.bc import load_demos
     from torchrl_robotmem import ZarrStorage
 
     a = write_memory(tmp_path / "a.zarr", raw_gym_rows(episodes=2, seed=0))
@@ -125,10 +134,10 @@ def test_the_recipe_clones_a_prior_with_hindsight_goals(tmp_path):
 def test_hindsight_settings_that_do_not_go_together_are_refused(overrides, message):
     from hydra import compose, initialize_config_dir
 
-    from recipes.her.prior_memory import check_prior_config
+    from experiments.prior_variants import check_prior_config
 
-    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "her"), version_base="1.3"):
-        cfg = compose("config", overrides=["prior=clone", "prior.paths=[prior.zarr]", *overrides])
+    with initialize_config_dir(config_dir=str(VARIANTS_DIR), version_base="1.3"):
+        cfg = compose("variants", overrides=["prior=clone", "prior.paths=[prior.zarr]", *overrides])
     with pytest.raises(ValueError, match=message):
         check_prior_config(cfg)
 
