@@ -21,6 +21,7 @@ from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.storage import integrity, loader
 from torchrl_robotmem.storage.fast_read import ChunkPlan, read_into
 from torchrl_robotmem.storage.integrity import IntegrityError
+from torchrl_robotmem.storage.rowfile import remove_rows
 
 CHUNK = 64
 
@@ -130,6 +131,7 @@ def test_damaged_chunk_still_fails_the_open_naming_it(tmp_path, read_only, damag
     n = 4 * CHUNK
     with ZarrStorage(path, 1000, chunk_rows=CHUNK) as s:
         s.set(slice(0, n), _rows(n))
+    remove_rows(path)  # the open reads the chunks (a sealed row file serves without them: tests/storage/test_row_tier.py)
     rel = "action/c/2/0" if damage == "flip" else "observation/c/1/0"
     full = os.path.join(path, rel)
     raw = bytearray(open(full, "rb").read())
@@ -153,6 +155,7 @@ def test_chunk_gone_after_the_listing_is_an_error_not_zeros(tmp_path, monkeypatc
     n = 4 * CHUNK
     with ZarrStorage(path, 1000, chunk_rows=CHUNK) as s:
         s.set(slice(0, n), _rows(n))
+    remove_rows(path)  # the open reads the chunks
     check_open = integrity.check_open
 
     def then_remove(*args, **kwargs):

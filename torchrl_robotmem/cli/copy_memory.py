@@ -24,6 +24,7 @@ import os
 import shutil
 from typing import Any
 
+from ..storage.rowfile import ROWS_DIR
 from ._build import atomic_target, check_target, is_local, write_failed
 from ._memory import open_memory
 from .errors import CLIError
@@ -48,10 +49,14 @@ def _fs(path: str):
 
 
 def _files(fs, root: str) -> list[str]:
-    """The store's files relative to ``root``, the root ``zarr.json`` last (``[""]``: a single-file store)."""
+    """The store's files relative to ``root``, the root ``zarr.json`` last (``[""]``: a single-file store).
+
+    The row file (``_rows/``) is left out: a cache of the chunks, filled again at the copy's first open.
+    """
     if fs.isfile(root):
         return [""]
     rel = sorted(p[len(root.rstrip("/")) + 1:] for p in fs.find(root, withdirs=False))
+    rel = [p for p in rel if not p.startswith(ROWS_DIR + "/")]
     return [p for p in rel if p != _RECORD] + ([_RECORD] if _RECORD in rel else [])
 
 

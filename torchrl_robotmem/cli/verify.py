@@ -50,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     if parser.get_default("command") == "repair":
         parser.add_argument("--dry-run", action="store_true", help="say what would be done, write nothing")
+    else:
+        parser.add_argument("--rows", action="store_true",
+                            help="also compare the sealed row file (_rows/) with the committed chunks, row for row")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,8 +66,20 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.command == "verify":
             report = verify(args.path)
-            print(json.dumps(report.to_dict(), indent=2) if args.json else report)
-            return 0 if report.ok else 1
+            rows = []
+            if getattr(args, "rows", False) and report.ok:
+                from torchrl_robotmem.storage.integrity.rows import row_file_problems
+
+                rows = row_file_problems(args.path)
+            if args.json:
+                print(json.dumps({**report.to_dict(), "rows": [str(p) for p in rows]}, indent=2))
+            else:
+                print(report)
+                for p in rows:
+                    print(f"  row file: {p}")
+                if getattr(args, "rows", False) and report.ok and not rows:
+                    print("  row file: matches the committed chunks (or there is none to serve)")
+            return 0 if report.ok and not any(p.severity == "error" for p in rows) else 1
         result = repair(args.path, dry_run=args.dry_run)
     except NotAMemoryError as err:
         raise CLIError(f"{args.path!r} is not a torchrl_robotmem memory: {err}", code=2) from None

@@ -151,11 +151,13 @@ def fresh_listings(storage_options: dict | None) -> dict:
     return {"use_listings_cache": False, "skip_instance_cache": True, **(storage_options or {})}
 
 
-def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_options: dict | None):
+def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_options: dict | None,
+               chunk_links: bool = True):
     """Returns ``(store_or_path, local_dir)``.
 
     ``local_dir`` is the directory of a local store (used for the writer lock),
-    else ``None``.
+    else ``None``. ``chunk_links=False``: the columns' chunk folders are not walked for links here (a
+    reader that reads them walks them first: ``refuse_links(local_dir, path, chunks=None)``).
     """
     spath = normalize_path(path)
     if not isinstance(spath, str):
@@ -186,7 +188,7 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
                 f"write into it: pass a new or empty directory, or an existing store."
             )
         p.mkdir(parents=True, exist_ok=True)
-    refuse_links(p, spath)
+    refuse_links(p, spath, chunks=chunk_links)
     from zarr.storage import LocalStore
 
     return LocalStore(str(p), read_only=read_only), p
@@ -548,7 +550,7 @@ def url_writer_lock(url: str, storage_options: dict | None) -> S3Lease | None:
     return None
 
 
-def links_below(directory: str | os.PathLike) -> list[tuple[str, str]]:
+def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> list[tuple[str, str]]:
     """``[(key, target)]`` of every symbolic link below ``directory`` (the directory itself is not looked at).
 
     One ``os.scandir`` walk that follows no link; ``is_symlink`` comes from the directory entry itself,
@@ -557,40 +559,52 @@ def links_below(directory: str | os.PathLike) -> list[tuple[str, str]]:
     write goes into an existing file (Zarr and the journal write a new file and rename it into place),
     so a write never reaches the file's other names.
 
+    ``chunks``: ``True`` walks everything; ``False`` skips the chunk folders (``c/``) of the columns (not of
+    the ``_``-named folders: the journal, a component's group), which an open served by a sealed row file
+    never reads (:mod:`.rowfile`); ``None`` walks only those chunk folders (checked before they are read).
+
     Example:
         >>> import os, tempfile
         >>> d = tempfile.mkdtemp()
         >>> os.makedirs(d + "/obs/c"); os.symlink("/etc/hostname", d + "/obs/c/0")
-        >>> links_below(d)
-        [('obs/c/0', '/etc/hostname')]
+        >>> links_below(d), links_below(d, chunks=False), links_below(d, chunks=None)
+        ([('obs/c/0', '/etc/hostname')], [], [('obs/c/0', '/etc/hostname')])
     """
     root = os.fspath(directory)
-    out, stack = [], [root]
+    out, stack = [], [(root, False, False)]  # (folder, in a column's chunk folder, in a "_" folder)
     while stack:
+        folder, in_chunks, own = stack.pop()
         try:
-            entries = list(os.scandir(stack.pop()))
+            entries = list(os.scandir(folder))
         except (FileNotFoundError, NotADirectoryError):
             continue
         for entry in entries:
+            inside = own or (folder == root and entry.name.startswith("_"))  # the journal, a component's group
+            # a column's chunk folder: "c" in a node's folder, itself no node (no zarr.json of its own)
+            chunk_folder = in_chunks or (not inside and entry.name == "c" and folder != root
+                                         and not os.path.lexists(os.path.join(entry.path, "zarr.json")))
             if entry.is_symlink():
-                try:
-                    target = os.readlink(entry.path)
-                except OSError:
-                    target = "?"
-                out.append((os.path.relpath(entry.path, root).replace(os.sep, "/"), target))
-            elif entry.is_dir(follow_symlinks=False):
-                stack.append(entry.path)
+                if chunks is not None or chunk_folder:
+                    try:
+                        target = os.readlink(entry.path)
+                    except OSError:
+                        target = "?"
+                    out.append((os.path.relpath(entry.path, root).replace(os.sep, "/"), target))
+            elif entry.is_dir(follow_symlinks=False) and not (chunk_folder and chunks is False) \
+                    and not (inside and chunks is None):
+                stack.append((entry.path, chunk_folder, inside))
     return sorted(out)
 
 
-def refuse_links(directory: str | os.PathLike, name: Any) -> None:
+def refuse_links(directory: str | os.PathLike, name: Any, *, chunks: bool | None = True) -> None:
     """Raises :class:`LinkError` naming them if a symbolic link lies below the local store ``directory``.
 
     Every reader and writer of a local store opens it through here (``open_store``, and ``verify`` /
     ``repair`` / ``copy``), so no chunk, record or journal is read through a link that may leave the
-    store, and no commit writes through one.
+    store, and no commit writes through one. ``chunks``: as :func:`links_below` takes it (a reader walks the
+    columns' chunk folders only when it reads them).
     """
-    links = links_below(directory)
+    links = links_below(directory, chunks=chunks)
     if links:
         raise LinkError(name, links)
 

@@ -20,6 +20,8 @@ from typing import Any
 
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 
+from .rowfile import ROWS_DIR
+
 __all__ = ["ZarrCheckpointer"]
 
 _POINTER = "zarr_storage.json"
@@ -37,7 +39,8 @@ def _link_tree(src: Path, dst: Path) -> None:
 
     if dst.exists():
         shutil.rmtree(dst)
-    shutil.copytree(src, dst, copy_function=link, ignore=shutil.ignore_patterns("*.partial"))
+    # the row file is a cache a writer writes in place: never linked (the copy fills its own at its first open)
+    shutil.copytree(src, dst, copy_function=link, ignore=shutil.ignore_patterns("*.partial", ROWS_DIR))
 
 
 class ZarrCheckpointer(StorageCheckpointerBase):

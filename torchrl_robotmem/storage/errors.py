@@ -29,8 +29,8 @@ class Problem:
         kind (str): ``"missing_chunk"``, ``"checksum"``, ``"undecodable"`` (a chunk),
             ``"metadata"`` (a ``zarr.json``), ``"attribute"`` (the commit record),
             ``"format"`` (a newer format), ``"journal"`` (a pending journal that cannot be
-            replayed as it is), ``"capacity"`` (sizes no machine here can hold) or ``"link"`` (a symbolic
-            link inside the store).
+            replayed as it is), ``"capacity"`` (sizes no machine here can hold), ``"link"`` (a symbolic
+            link inside the store) or ``"rows"`` (the row file disagrees with the chunks: ``verify --rows``).
         what (str): what is wrong, in words.
         array (str, optional): the array path (``"next/observation"``).
         chunk (int, optional): the chunk index along the rows.

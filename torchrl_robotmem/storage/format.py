@@ -33,13 +33,22 @@ import zarr
 from .errors import IntegrityError, Problem
 
 __all__ = [
-    "ARRAY_CONFIG", "BACKUP_DIR", "FORMAT_MARKER", "FORMAT_VERSION", "JOURNAL_DIR", "MARKER", "RESERVED",
+    "ARRAY_CONFIG", "BACKUP_DIR", "BOUNDED_FORMAT", "FORMAT_MARKER", "FORMAT_VERSION", "JOURNAL_DIR", "MARKER",
+    "RESERVED", "UNBOUNDED", "UNBOUNDED_SIZE", "grown_size",
     "chunk_keys", "classify_read_error", "decode_chunks", "dims", "is_strict", "numel", "read_error", "read_rows",
     "row_chunk_key", "write_zero_chunks", "writing_config", "writing_handles",
 ]
 
-#: the format this library writes; bump on any change readers must know about
-FORMAT_VERSION = 1
+#: the newest format this library reads and writes; bump on any change readers must know about.
+#: 1: a ring of ``max_size`` rows; 2: also a memory without a declared capacity (``"unbounded": true``),
+#: which grows (a store of format 1 stays format 1, so that older versions keep reading it)
+FORMAT_VERSION = 2
+#: the format of a store with a declared capacity
+BOUNDED_FORMAT = 1
+#: the TorchRL-facing ``max_size`` of a memory without a declared capacity: no writer index wraps around it
+UNBOUNDED_SIZE = 1 << 50
+#: the record attribute of a memory without a declared capacity (its ``max_size`` is the rows allocated so far)
+UNBOUNDED = "unbounded"
 #: the group attribute that marks a torchrl_robotmem store (``{"format_version": ..., ...}``)
 FORMAT_MARKER = "torchrl_robotmem"
 #: what the format marker of a store created by this version records (``marker["integrity"]``)
@@ -55,6 +64,20 @@ RESERVED = (JOURNAL_DIR, BACKUP_DIR)
 
 
 # -- the commit record ----------------------------------------------------------------
+
+
+def grown_size(capacity: int, need: int, chunk_rows: int) -> int:
+    """The rows a memory without a declared capacity grows to, to hold ``need`` rows.
+
+    Doubling up to 1M rows, then 1M rows at a time; whole chunks. The disk is taken as rows arrive.
+
+    Example:
+        >>> grown_size(16384, 16385, 16384), grown_size(2**20, 2**20 + 1, 16384)
+        (32768, 2097152)
+    """
+    new = max(int(need), min(2 * capacity, capacity + (1 << 20)))
+    return -(-new // chunk_rows) * chunk_rows
+
 
 
 def is_strict(attrs: dict) -> bool:

@@ -29,7 +29,10 @@ import torchrl
 from .._version import __version__
 from . import _backend, integrity, lifecycle
 from .errors import IntegrityError
-from .format import FORMAT_MARKER, FORMAT_VERSION, MARKER
+from .format import BOUNDED_FORMAT, FORMAT_MARKER, FORMAT_VERSION, MARKER, UNBOUNDED
+
+#: the rows a new memory without a declared capacity starts with (at its first write: one chunk, at least)
+UNBOUNDED_START = 1024
 
 __all__ = ["StoreHandle"]
 
@@ -79,8 +82,9 @@ class StoreHandle:
 
     def open(self) -> None:
         """Opens the store and its group; a writable local store takes the writer lock first."""
+        # a reader walks the columns' chunk folders for links only if it reads them (MemoryStore.open_rows)
         self.store, self.local_dir = _backend.open_store(
-            self.path, read_only=self.read_only, storage_options=self.storage_options
+            self.path, read_only=self.read_only, storage_options=self.storage_options, chunk_links=not self.read_only
         )
         if self.local_dir is not None and not self.read_only:
             self.lock = _backend.WriterLock(self.local_dir)
@@ -117,20 +121,21 @@ class StoreHandle:
                 f"{self.path!r} is a Zarr group that was not written by torchrl_robotmem "
                 f"(no {FORMAT_MARKER!r} attribute). Refusing to write into it."
             )
-        if max_size is None:
+        unbounded = max_size is None  # a memory without a declared capacity: it grows as rows arrive
+        if unbounded and int(ndim) != 1:
             raise ValueError(
-                f"No store exists at {self.path!r} yet: pass max_size to create one, e.g. "
-                f"ZarrStorage({self.path!r}, max_size=1_000_000)."
+                f"A memory without a declared capacity stores one transition a row (ndim=1), got ndim={ndim}: "
+                f"pass max_size to create {self.path!r} with ndim={ndim}, e.g. ZarrStorage(path, 1_000_000, ndim={ndim})."
             )
         record = {
             FORMAT_MARKER: {
-                "format_version": FORMAT_VERSION,
+                "format_version": FORMAT_VERSION if unbounded else BOUNDED_FORMAT,
                 "library_version": __version__,
                 "torchrl_version": torchrl.__version__,
                 "zarr_version": _backend.zarr.__version__,
                 "integrity": dict(MARKER),  # checksummed chunks, all-zero ones written too
             },
-            "max_size": int(max_size),
+            "max_size": UNBOUNDED_START if unbounded else int(max_size),
             "ndim": int(ndim),
             "inner_shape": None,
             "chunk_rows": int(chunk_rows) if chunk_rows is not None else None,
@@ -144,6 +149,7 @@ class StoreHandle:
             "runs": 0,
             "env_names": [],
             "journal": None,
+            **({UNBOUNDED: True} if unbounded else {}),
         }
         if self.group is None:  # a new store: the group and its record in one write
             self.group = _backend.create_group(self.store, record)

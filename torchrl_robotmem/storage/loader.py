@@ -42,7 +42,8 @@ def use_worker(handle, *, background: bool, commit_process: bool | None) -> bool
     return os.environ.get("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "1") != "0"
 
 
-def open_record(handle, max_size: int | None, *, chunk_rows: int | None, ndim: int, on_damage: str) -> dict:
+def open_record(handle, max_size: int | None, *, chunk_rows: int | None, ndim: int, on_damage: str,
+                served: Callable[[dict], bool] | None = None, mapped: bool = False) -> dict:
     """Opens the store (writing a new store's record), checks its format and integrity; returns the record.
 
     Args:
@@ -53,6 +54,8 @@ def open_record(handle, max_size: int | None, *, chunk_rows: int | None, ndim: i
         chunk_rows (int or None): rows per chunk of a new store.
         ndim (int): leading batch dimensions of a new store.
         on_damage (str): ``"raise"`` or ``"warn"`` (see ``ZarrStorage``).
+        served (callable, optional): asked once the record is sane whether a sealed row file serves the
+            rows (then no chunk is listed: none is read). mapped (bool): the rows are mapped from a file.
 
     Example:
         >>> from torchrl_robotmem.storage.handle import StoreHandle
@@ -61,7 +64,8 @@ def open_record(handle, max_size: int | None, *, chunk_rows: int | None, ndim: i
         0
         >>> h.release()
     """
-    handle.open()
+    if handle.store is None:
+        handle.open()
     attrs = handle.group.attrs.asdict() if handle.group is not None else {}  # None: a new store
     if attrs.get(FORMAT_MARKER) is None:
         handle.create(attrs, max_size, chunk_rows, ndim)
@@ -70,24 +74,25 @@ def open_record(handle, max_size: int | None, *, chunk_rows: int | None, ndim: i
     # before anything is read or written: a damaged store raises, naming the array and chunk
     grows = max_size is not None and int(max_size) != attrs.get("max_size")
     return integrity.check_open(handle.group, attrs, store=handle.store, local_dir=handle.local_dir, path=handle.path,
-                                read_only=handle.read_only, on_damage=on_damage,
+                                read_only=handle.read_only, on_damage=on_damage, served=served, mapped=mapped,
                                 decode=not handle.read_only and (bool(attrs.get("journal")) or grows))
 
 
-def reopen_record(handle, *, on_damage: str) -> tuple[Any, dict]:
+def reopen_record(handle, *, on_damage: str, served: Callable[[dict], bool] | None = None,
+                  mapped: bool = False) -> tuple[Any, dict]:
     """A reader's fresh group on its store and the checked record (``refresh``); the handle is unchanged.
 
     Args:
         handle (StoreHandle): a read-only handle.
 
     Keyword Args:
-        on_damage (str): ``"raise"`` or ``"warn"``.
+        on_damage (str): ``"raise"`` or ``"warn"``. served, mapped: as :func:`open_record` takes them.
     """
     group = _backend.open_group(handle.store, read_only=True)
     attrs = group.attrs.asdict()
     handle.check_format(attrs)
     attrs = integrity.check_open(group, attrs, store=handle.store, local_dir=handle.local_dir, path=handle.path,
-                                 read_only=True, on_damage=on_damage)
+                                 read_only=True, on_damage=on_damage, served=served, mapped=mapped)
     return group, attrs
 
 
@@ -112,7 +117,7 @@ def snapshot(handle, mirror, tags, schema, engine) -> Callable[[], None]:
     return restore
 
 
-def grow_arrays(handle, mirror, engine, new_max: int, *, write_count: int) -> None:
+def grow_arrays(handle, mirror, engine, new_max: int, *, write_count: int, ring: bool = True) -> None:
     """Grows a store that has not wrapped around to ``new_max`` transitions (arrays and record).
 
     Raises, saying what to pass instead, on a smaller size, a reader or a store that wrapped around.
@@ -125,6 +130,7 @@ def grow_arrays(handle, mirror, engine, new_max: int, *, write_count: int) -> No
 
     Keyword Args:
         write_count (int): transitions written to the store so far.
+        ring (bool): the store is a ring (a memory without a declared capacity never wraps around).
     """
     old = mirror.max_size
     if new_max < old:
@@ -134,7 +140,7 @@ def grow_arrays(handle, mirror, engine, new_max: int, *, write_count: int) -> No
         )
     if handle.read_only:
         raise ValueError(f"Cannot grow a store opened read_only (max_size={old}).")
-    if write_count > engine.committed_len or engine.committed_len > old:
+    if ring and (write_count > engine.committed_len or engine.committed_len > old):
         raise ValueError(
             f"The store at {handle.path!r} has wrapped around its max_size={old}; it cannot "
             f"grow to {new_max} without reordering rows. Pass max_size={old} (or None)."

@@ -37,6 +37,7 @@ from . import _backend
 from .fast_read import read_into
 from .format import read_rows
 from .journal import PREFIX, journal_chunks
+from .rowfile import RowFile, rows_layout
 from .schema import PackedLayout
 from .tags import TAG_KEYS, open_episode_ends
 
@@ -78,6 +79,9 @@ class RamMirror:
         self.packed: torch.Tensor | None = None
         self.views: TensorDictBase | None = None
         self.columns: dict = {}
+        self.rows: RowFile | None = None  # the file the packed rows are mapped from (None: RAM)
+        self.unbounded = False  # a memory without a declared capacity: chunks sized for a large memory
+        self.mapped_layout: dict | None = None  # the layout of the rows in that file
 
     # -- shapes along the first dimension --------------------------------------------
 
@@ -114,10 +118,31 @@ class RamMirror:
             if p not in TAG_KEYS
         }
 
+    def file_layout(self) -> dict | None:
+        """What a row file's seal binds the rows to: row bytes, each column's offset, dtype and shape, the rows."""
+        return None if self.layout is None else rows_layout(self.layout, (self.max_dim0, *self.inner_shape))
+
     def allocate(self, *, keep: bool = True) -> None:
-        """(Re)builds the packed buffer for the current schema, keeping the rows that hold data (unless not ``keep``)."""
+        """(Re)builds the packed buffer for the current schema, keeping the rows that hold data (unless not ``keep``).
+
+        Rows mapped from a file (:attr:`rows`) that only grow (the same layout) stay where they are: the file
+        is made longer and mapped again, no row is copied. A new layout (a column added) gets a file of its own.
+        """
         old = self.views if keep else None
-        self.packed = self.layout.allocate((self.max_dim0, *self.inner_shape), self.device)
+        shape = (self.max_dim0, *self.inner_shape)
+        if self.rows is None:
+            self.packed = self.layout.allocate(shape, self.device)
+        else:
+            layout = self.file_layout()
+            same = old is not None and self.mapped_layout is not None and \
+                {**self.mapped_layout, "shape": None} == {**layout, "shape": None} and \
+                self.mapped_layout["shape"][1:] == layout["shape"][1:]
+            if self.rows.fd is None:
+                self.rows.open({}, layout=None)
+            self.packed = self.rows.map(shape, self.layout.row_bytes, new_file=old is not None and not same)
+            self.mapped_layout = layout
+            if same:
+                old = None  # the rows are in the file already
         self.views = self.layout.views(self.packed)
         self.columns = dict(self.views.items(include_nested=True, leaves_only=True))
         if old is not None:

@@ -15,16 +15,17 @@ from typing import Any
 
 import torch
 
-from . import lifecycle, loader, writer_sync
+from . import _backend, lifecycle, loader, writer_sync
 from ._commit_worker import CommitWorker
 from .commit import CommitEngine
 from .context import missing_context, user_stacklevel
-from .format import writing_handles
+from .format import UNBOUNDED, dims, grown_size, writing_handles
 from .handle import StoreHandle
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
 from .registry import TagRegistry
-from .schema import with_constants
+from .rowfile import RowFile, rows_layout
+from .schema import PackedLayout, with_constants
 from .store_schema import StoreSchema
 from .summary import summarize
 from .tags import TAG_KEYS
@@ -54,12 +55,15 @@ class MemoryStore:
         self.commit_process = commit_process
         self.write_count = 0  # the writer's position: its count and its next row
         self.cursor = 0
+        self.unbounded = False  # a memory without a declared capacity (it grows; no ring)
         self.restored_writers: weakref.WeakSet | None = None  # set once the store is open
         self.context_checked = False  # a success column and an env name: checked at this handle's first write
         self.goal_conditioned_arg = goal_conditioned  # as given (None: as recorded)
         self.goal_conditioned = True if goal_conditioned is None else bool(goal_conditioned)
         self.recorded_goal_conditioned = True  # what the store's record says (no attribute: True)
         self.before_close: list[Callable[[], Any]] = []  # components' flushes (weak methods), run first on close
+        self.rows: RowFile | None = None  # where the rows are mapped from (prepare_rows)
+        self.rows_sealed = False  # the row file held the opened record's rows: no chunk was read
 
     def claim(self):
         """A writer takes the store's writer lock; returns the earlier handle of this process it took over, if any."""
@@ -80,6 +84,7 @@ class MemoryStore:
         """Makes the parts for a store of ``max_size`` rows and reads the record ``attrs`` into them."""
         handle = self.handle
         self.mirror = RamMirror(max_size, ndim=ndim, device=device, length=length)
+        self.mirror.rows = self.rows
         self.tags = TagRegistry(read_only=self.read_only)
         self.engine = CommitEngine(
             self.mirror, handle.group, record=record, commit_interval=commit_interval,
@@ -91,6 +96,42 @@ class MemoryStore:
         self.store_schema = StoreSchema(handle, self.mirror, self.engine.arrays, compressor=codec[0], level=codec[1])
         self.sync_attrs(attrs)
         self.restored_writers = weakref.WeakSet()  # this session's state
+
+    def prepare_rows(self, device) -> None:
+        """Makes the row file: a local store's ``_rows/``, a private file for a URL store; none (RAM) otherwise."""
+        path = self.handle.path
+        if torch.device(device).type != "cpu":
+            self.rows = None  # a CUDA mirror lives in device memory
+        elif self.handle.local_dir is not None:
+            self.rows = RowFile(self.handle.local_dir, read_only=self.read_only)
+        elif isinstance(path, str) and _backend.is_url(path) and not path.startswith("memory://"):
+            self.rows = RowFile(None, read_only=self.read_only)
+        else:
+            self.rows = None
+
+    def open_rows(self, attrs: dict) -> bool:
+        """Picks the row file for the opened record ``attrs``; returns whether it holds its rows (no chunk to read).
+
+        Called by the open's integrity check once ``attrs`` are sane (a served row file needs no chunk listing).
+        """
+        layout = None
+        if attrs.get("schema"):
+            max_dim0, _, inner = dims(attrs)
+            layout = rows_layout(PackedLayout(attrs["schema"]), (max_dim0, *inner))
+        self.rows_sealed = self.rows is not None and self.rows.open(attrs, layout=layout)
+        if not self.rows_sealed and self.read_only and self.handle.local_dir is not None:
+            _backend.refuse_links(self.handle.local_dir, self.handle.path, chunks=None)  # the chunks will be read
+        return self.rows_sealed
+
+    def seal_rows(self) -> None:
+        """A writer's clean close: seals the row file for the committed record (see :mod:`.rowfile`)."""
+        rows = self.mirror.rows
+        if rows is None or self.read_only or self.mirror.schema is None or self.mirror.packed is None:
+            return
+        n = int(self.mirror.length())
+        ends = self.mirror.open_episode_ends(n, self.cursor, full=n >= self.mirror.max_size)
+        record = _backend.open_group(self.handle.store, read_only=True).attrs.asdict()
+        rows.seal(record, layout=self.mirror.file_layout(), open_ends=ends.tolist())
 
     def open_arrays(self) -> None:
         """A writer's handles on the stored arrays; starts its commit worker (after the open's reads).
@@ -117,10 +158,26 @@ class MemoryStore:
         self.tags.sync(attrs)
         self.write_count = int(attrs.get("write_count", 0))
         self.cursor = int(attrs.get("cursor", 0))
+        self.unbounded = self.mirror.unbounded = bool(attrs.get(UNBOUNDED))
         self.engine.set_committed(attrs)
         self.recorded_goal_conditioned = attrs.get(GOAL_CONDITIONED) is not False  # older stores lack it
         if self.goal_conditioned_arg is None:
             self.goal_conditioned = self.recorded_goal_conditioned
+
+    def grow_for(self, need: int) -> bool:
+        """A memory without a declared capacity: grows the arrays, the record and the rows to hold ``need`` rows.
+
+        Called by the writer, with every earlier row committed, before a write that reaches past the rows
+        allocated. The arrays grow first, then the record says so: a crash in between leaves arrays longer
+        than the record, which opens as before. Returns whether it grew.
+        """
+        mirror = self.mirror
+        if not self.unbounded or need <= mirror.max_dim0:
+            return False
+        new = grown_size(mirror.max_dim0, need, mirror.chunk_rows or 1)
+        with self.engine.cv:
+            loader.grow_arrays(self.handle, mirror, self.engine, new, write_count=self.write_count, ring=False)
+        return True
 
     def env_code(self, name: str, *, create: bool = False) -> int:
         """The integer code of an environment name (``create``: register a new one, writers only)."""
@@ -155,7 +212,7 @@ class MemoryStore:
     def advance(self, n: int, next_row: int) -> None:
         """The writer wrote ``n`` rows; its next row is ``next_row`` (wrapping around)."""
         self.write_count += n
-        self.cursor = next_row % self.mirror.max_dim0
+        self.cursor = next_row if self.unbounded else next_row % self.mirror.max_dim0
 
     def reset(self) -> None:
         """An emptied store: the writer starts over (as TorchRL's writer restarts its count)."""
@@ -202,7 +259,10 @@ class MemoryStore:
 
     def close_open_episodes(self, length: int, full: bool, own_write: Callable, bump: Callable[[], None]) -> None:
         """Marks the last row of every episode the previous run left open as done/truncated."""
-        rows = self.mirror.open_episode_ends(length, self.cursor, full=full)
+        if self.rows_sealed:  # the rows the writer that sealed them found open at its close
+            rows = torch.tensor(self.mirror.rows.open_ends, dtype=torch.long)
+        else:
+            rows = self.mirror.open_episode_ends(length, self.cursor, full=full)
         if rows.numel():
             self.mark_truncated(rows, own_write, bump)
 
@@ -231,6 +291,7 @@ class MemoryStore:
         try:
             with lifecycle.critical():
                 self.flush()
+                self.seal_rows()
         except Exception:
             engine = getattr(self, "engine", None)
             if engine is not None:
@@ -261,6 +322,8 @@ class MemoryStore:
         engine = getattr(self, "engine", None)
         if engine is not None:
             engine.close()
+        if self.rows is not None:
+            self.rows.release()
         self.handle.release()
 
     # -- reads -----------------------------------------------------------------------------
@@ -293,7 +356,8 @@ class MemoryStore:
 
     def reopen(self, max_size: int) -> dict | None:
         """Re-reads the committed record (a reader's refresh); ``None`` while the store holds no schema."""
-        group, attrs = loader.reopen_record(self.handle, on_damage=self.on_damage)
+        group, attrs = loader.reopen_record(self.handle, on_damage=self.on_damage, served=self.open_rows,
+                                            mapped=self.rows is not None)
         if attrs.get("schema") is None:
             return None
         self.handle.group = self.engine.group = group

@@ -101,8 +101,11 @@ class StoreSchema:
         schema = spec_of(row.reshape(-1)[0] if row.batch_dims else row)
         m = self.mirror
         m.inner_shape = tuple(row.batch_size)
-        if m.chunk_rows is None:
-            m.chunk_rows = default_chunk_rows(PackedLayout(schema).row_bytes * m.inner_numel, m.max_dim0)
+        if m.chunk_rows is None:  # a memory without a declared capacity will grow: chunks of a large memory
+            m.chunk_rows = default_chunk_rows(PackedLayout(schema).row_bytes * m.inner_numel,
+                                              1 << 30 if m.unbounded else m.max_dim0)
+        if m.unbounded:
+            m.max_size = max(m.max_size, m.chunk_rows)  # its first rows: one chunk
         m.max_size = m.max_dim0 * m.inner_numel
         self._create_arrays(schema, filled=None)
         m.configure(schema)

@@ -18,7 +18,7 @@ from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
 from . import compat, lifecycle, loader
 from .checkpointer import ZarrCheckpointer
-from .format import RESERVED
+from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
 from .planner import check_rows, completes_chunk, cursor_rows, last_index, plan_write, write_span
 from .schema import DataKind
@@ -108,9 +108,20 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def _open(self, max_size, *, env, ndim, chunk_rows, device, compilable, commit_interval, background, codec) -> None:
         store, handle = self._store, self._handle
-        attrs = loader.open_record(handle, max_size, chunk_rows=chunk_rows, ndim=ndim, on_damage=store.on_damage)
+        handle.open()
+        store.prepare_rows(device)  # the rows' file: served without reading a chunk if sealed for the record
+        attrs = loader.open_record(handle, max_size, chunk_rows=chunk_rows, ndim=ndim, on_damage=store.on_damage,
+                                   served=store.open_rows, mapped=store.rows is not None)
         stored_max = int(attrs["max_size"])
-        super().__init__(max_size=stored_max, device=device, ndim=int(attrs.get("ndim", 1)), compilable=compilable)
+        unbounded = bool(attrs.get(UNBOUNDED))
+        if unbounded and max_size is not None:
+            raise ValueError(f"The store at {handle.path!r} has no declared capacity (it was created with "
+                             f"max_size=None and grows as rows arrive); max_size={max_size} cannot bound it. "
+                             f"Open it with ZarrStorage({handle.path!r}), and sample its newest rows with "
+                             f"WindowSampler(window) if a run should see only those.")
+        # TorchRL's max_size: an unbounded memory's is one no writer index wraps around (the rows: storage.capacity)
+        super().__init__(max_size=UNBOUNDED_SIZE if unbounded else stored_max, device=device,
+                         ndim=int(attrs.get("ndim", 1)), compilable=compilable)
         record = lambda: store.meta_snapshot(len(self), last_index(self._last_cursor))  # noqa: E731
         store.build(stored_max, ndim=self.ndim, device=self.device, length=self.__len__, record=record,
                     commit_interval=commit_interval, background=background, codec=codec, attrs=attrs)
@@ -135,15 +146,19 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         if pending is not None:
             attrs = pending
             self._store.sync_attrs(attrs)
+        sealed = self._store.rows_sealed and pending is None  # the row file holds the record's rows
         self._allocate()
-        n = loader.load_rows(self._handle, self._mirror, record, attrs, on_damage=self._store.on_damage)
+        if sealed:
+            n = int(attrs.get("len", 0))
+        else:
+            n = loader.load_rows(self._handle, self._mirror, record, attrs, on_damage=self._store.on_damage)
         n0 = self._mirror.dim0(n)
         self.initialized = True
         self._len = n
         last = int(attrs.get("last_cursor", -1))
         if last >= 0:
             self._set_last_cursor(last)
-        if n:
+        if n and not sealed:  # a sealed file was closed cleanly: its record's counters are exact
             self._store.note_stored(n0)
         self._bump_own()
 
@@ -159,6 +174,16 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         self._store.close_episode_at(row, self._own_write, self._bump_own)
 
     # -- properties --------------------------------------------------------------------------
+
+    @property
+    def bounded(self) -> bool:
+        """Whether the memory has a declared capacity (a ring of ``max_size`` rows); ``False``: it grows, no ring."""
+        return not self._store.unbounded
+
+    @property
+    def capacity(self) -> int:
+        """The rows allocated now: ``max_size`` of a bounded memory; what an unbounded one has grown to."""
+        return self._mirror.max_size
 
     @property
     def env_names(self) -> tuple[str, ...]:
@@ -248,7 +273,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             plan = plan_write(view, cursor, data, set_cursor=set_cursor, as_kind=as_kind, keep_tags=keep_tags)
         except Exception:
             if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
-                self._store.rollback_writers(self, cursor, self._mirror.max_dim0 if self.initialized else self.max_size)
+                size = self.max_size if self._store.unbounded or not self.initialized else self._mirror.max_dim0
+                self._store.rollback_writers(self, cursor, size)
             raise
         data = self._store.register(plan)
         n, new_paths, new_constants = plan.n, plan.new_paths, plan.new_constants
@@ -261,6 +287,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 self._evolve_schema(data, new_paths, plan.single)
             if new_constants:
                 self._engine.update_attrs(self._store_schema.add_constants(new_constants))
+            if self._store.unbounded:
+                self._fit(cursor)
             rows = cursor_rows(cursor, self._mirror.max_dim0)
             cursor, dirty = write_span(cursor, data, rows)
             with self._engine.cv:
@@ -269,6 +297,18 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                     self._store.advance(n, int(rows[-1]) + 1)
                 self._engine.mark_dirty(dirty, self._mirror.chunk_rows)
             self._engine.kick(notify=completes_chunk(rows, self._mirror.chunk_rows))
+
+    def _fit(self, cursor) -> None:
+        """A memory without a declared capacity grows (rows committed first) to hold the rows ``cursor`` writes."""
+        need = cursor.stop if isinstance(cursor, slice) and cursor.stop is not None else None
+        if need is None:
+            rows = cursor_rows(cursor, self._mirror.max_dim0)
+            need = int(rows.max()) + 1 if rows.numel() else 0
+        if need > self._mirror.max_dim0:
+            self.flush()
+            if self._store.grow_for(need):
+                with self._engine.cv:
+                    self._allocate()
 
     @contextlib.contextmanager
     def _own_write(self):
@@ -306,7 +346,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def _init_schema(self, data: TensorDictBase, single: bool) -> None:
         record = self._store_schema.create(data, single)
-        self.max_size = self._mirror.max_size  # as TorchRL rounds it for ndim > 1
+        if not self._store.unbounded:
+            self.max_size = self._mirror.max_size  # as TorchRL rounds it for ndim > 1
         self._allocate()
         self.initialized = True
         self._engine.update_attrs(record)
@@ -380,7 +421,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             attrs = self._store.reopen(self.max_size)
             if attrs is None:
                 return 0
-            if int(attrs["max_size"]) != self.max_size:  # the writer grew the store (the mirror knows)
+            if int(attrs["max_size"]) != self.max_size and not self._store.unbounded:  # the writer grew the store
                 self.max_size = int(attrs["max_size"])
                 self.__dict__.pop("_total_shape_value", None)
             self.initialized = False
@@ -430,7 +471,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def summary(self) -> dict[str, Any]:
         """Rows, episodes, runs, success rates, env names and size on disk, as a dict (see :func:`.summary.summarize`)."""
-        return self._store.summary(self.initialized, len(self), self.max_size)
+        return self._store.summary(self.initialized, len(self), None if self._store.unbounded else self.max_size)
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(path={self.path!r}, len={len(self)}, max_size={self.max_size}, "

@@ -46,6 +46,24 @@ def _memory_limit() -> int | None:
     return limit
 
 
+#: what a mapping may span where no limit says less (x86-64 user space is 128 TiB; leave room for the rest)
+_ADDRESS_SPACE = 1 << 45
+
+
+def _address_limit() -> int:
+    """Bytes this process may map: its address-space limit, at most 32 TiB."""
+    limit = _ADDRESS_SPACE
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY and soft > 0:
+            limit = min(limit, soft)
+    except (ImportError, OSError, ValueError):
+        pass
+    return limit
+
+
 def _size(n: float) -> str:
     for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
         if n < 1000 or unit == "PB":
@@ -54,11 +72,12 @@ def _size(n: float) -> str:
     return f"{n} B"
 
 
-def capacity_problem(attrs: dict, *, mirror: bool = True) -> Problem | None:
+def capacity_problem(attrs: dict, *, mirror: bool = True, mapped: bool = False) -> Problem | None:
     """Sizes of sane attributes that no process here could hold, as a problem naming the field; else ``None``.
 
-    ``mirror``: the RAM mirror a ``ZarrStorage`` allocates (``max_size`` rows);
-    otherwise one chunk (what ``verify`` decodes at a time).
+    ``mirror``: the rows a ``ZarrStorage`` allocates (``max_size`` rows); otherwise one chunk (what
+    ``verify`` decodes at a time). ``mapped``: those rows are mapped from a file (the row tier), so what
+    bounds them is the address space this process may map, not RAM (the disk is taken as rows arrive).
     """
     if not attrs.get("schema"):
         return None
@@ -66,7 +85,7 @@ def capacity_problem(attrs: dict, *, mirror: bool = True) -> Problem | None:
     chunk_rows = int(attrs["chunk_rows"])
     per_row = max(math.prod(inner), 1) * PackedLayout(attrs["schema"]).row_bytes
     rows = max(max_dim0, chunk_rows) if mirror else chunk_rows
-    limit = _memory_limit()
+    limit = _address_limit() if mirror and mapped else _memory_limit()
     if limit is None or rows * per_row <= limit:
         return None
 
@@ -82,9 +101,10 @@ def capacity_problem(attrs: dict, *, mirror: bool = True) -> Problem | None:
         field = f"attribute 'chunk_rows' ({chunk_rows})"
     else:
         field = f"attribute 'max_size' ({attrs['max_size']})"
-    what = "its RAM mirror" if mirror else "one chunk"
+    what = ("its row file" if mapped else "its RAM mirror") if mirror else "one chunk"
     return Problem("capacity", f"{field}: {what} of {rows} rows of {per_row} bytes would take {_size(rows * per_row)}, "
-                   f"more than this machine can allocate ({_size(limit)}: RAM + swap, or this process's limit)",
+                   f"more than this machine can allocate ({_size(limit)}: "
+                   f"{'the address space this process may map' if mirror and mapped else 'RAM + swap, or this process limit'})",
                    key="zarr.json")
 
 

@@ -23,6 +23,7 @@ Example:
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import zarr
@@ -37,7 +38,8 @@ __all__ = ["check_open"]
 
 
 def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any, read_only: bool,
-               on_damage: str = "raise", decode: bool = False, list_chunks: bool = True) -> dict:
+               on_damage: str = "raise", decode: bool = False, list_chunks: bool = True,
+               served: Callable[[dict], bool] | None = None, mapped: bool = False) -> dict:
     """The checks ``ZarrStorage`` makes at open, before it reads or writes anything.
 
     Raises :class:`IntegrityError` naming the arrays and chunks at fault. With
@@ -47,15 +49,24 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
     also decodes every chunk below the committed length (done for writable
     opens that write before reading: a journal replay or growing the store).
 
+    ``served`` is asked, once the attributes are sane, whether a sealed row file will serve the rows
+    (:meth:`MemoryStore.open_rows <..store.MemoryStore.open_rows>`): then no chunk is listed, since none
+    is read (``robotmem verify`` lists and decodes them all). ``mapped``: the rows will be mapped from a
+    file, so the capacity that counts is the address space, not RAM.
+
     Returns the attributes to open with.
     """
     problems = check_attributes(attrs)
     if any(p.kind == "format" for p in problems):
         return attrs  # ZarrStorage's own format check says what to do
-    capacity = None if problems else capacity_problem(attrs)
+    capacity = None if problems else capacity_problem(attrs, mapped=mapped)
     if capacity is not None:  # before anything is listed or allocated
         raise ValueError(f"The store at {path!r} cannot be opened on this machine: {capacity.what}. "
                          f"Nothing was read or changed; `robotmem verify {path}` checks it chunk by chunk.")
+    if not problems and served is not None and served(attrs):
+        if read_only and not decode and on_damage == "raise":
+            return attrs  # a reader reads no array: its rows come from the sealed file
+        list_chunks = False
     if not problems:
         problems += _array_problems(group, attrs, store=store, local_dir=local_dir, list_chunks=list_chunks,
                                     decode=decode or on_damage == "warn", decode_journal=decode)

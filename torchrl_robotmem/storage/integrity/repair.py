@@ -30,6 +30,7 @@ from .. import _backend
 from ..errors import IntegrityError, LinkError, Problem
 from ..format import BACKUP_DIR, FORMAT_MARKER, dims, numel, writing_config
 from ..journal import replay_journal
+from ..rowfile import remove_rows
 from .arrays import disagreement
 from .attributes import bad_attributes, check_attributes, is_int, unsafe_path
 from .capacity import capacity_problem
@@ -230,6 +231,9 @@ def _refusals(before: IntegrityReport, store: Any, local_dir: Any) -> dict[str, 
 
 def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> RepairReport:
     mend = _Mend(before, store, local_dir, dry_run)
+    if not dry_run and local_dir is not None and before.problems and remove_rows(local_dir):
+        # the row file is a cache of the chunks being mended: the next open fills it from the mended ones
+        mend.actions.append("deleted the row file (_rows/): the next open fills it from the mended chunks")
     mend.run(metas)
     after = None if dry_run else verify(path, storage_options=storage_options)
     return RepairReport(before, after, mend.actions, mend.backup)

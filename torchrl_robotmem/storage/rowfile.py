@@ -1,0 +1,363 @@
+"""The packed rows of a store in a memory-mapped file, and the seal that says when that file may be served.
+
+A local store keeps its packed rows (:class:`~.schema.PackedLayout`) in ``_rows/rows.bin``, mapped into
+the process (``mmap``): the OS page cache is the RAM tier, so resident memory follows the rows a process
+touches, never the memory's size, and pages the process no longer touches can be reclaimed. The file is a
+cache of the committed Zarr chunks, never the durable copy.
+
+When the file may be served without reading a chunk: ``_rows/seal.json`` says so. A writer writes it at a
+clean close, after its last commit and an ``fsync`` of the file; it binds
+
+- the commit record (a sha256 of the record's canonical JSON, :func:`record_digest`),
+- the layout (row bytes, each column's offset, dtype and shape, the rows mapped),
+- the file itself (device, inode, size and modification time: a file replaced, grown or written since the
+  seal does not match).
+
+A writer removes the seal (durably) before its first write into the file, so a crash leaves no seal and the
+next open fills the file from the chunks. Anything that does not match is filled again, never served.
+
+Locks keep a reader's rows the committed ones: a reader that maps ``rows.bin`` holds ``flock(LOCK_SH)`` on
+it; a writer writes in place only if it gets ``flock(LOCK_EX | LOCK_NB)`` (and the file has no other
+name); otherwise it writes a file of its own (``rows.<pid>.bin``), renamed over ``rows.bin`` at its clean
+close (a reader keeps its inode). A reader that finds no usable seal (a writer is active, a crash) fills a
+private file in the cache directory (``$TORCHRL_ROBOTMEM_CACHE``, else the system's temporary directory),
+unlinked as soon as it is made, so nothing is left behind whatever happens to the process.
+
+Example:
+    >>> import tempfile, torch
+    >>> from torchrl_robotmem.storage.rowfile import RowFile
+    >>> d = tempfile.mkdtemp()
+    >>> rows = RowFile(d, read_only=False)
+    >>> rows.open({"len": 0}, layout=None)
+    False
+    >>> packed = rows.map((4,), 8)
+    >>> packed[:2] = 7
+    >>> rows.seal({"len": 2}, layout={"row_bytes": 8})
+    >>> rows.release()
+    >>> again = RowFile(d, read_only=True)
+    >>> again.open({"len": 2}, layout={"row_bytes": 8}), again.map((4,), 8)[1].tolist()
+    (True, [7, 7, 7, 7, 7, 7, 7, 7])
+    >>> again.release()
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import hashlib
+import itertools
+import json
+import math
+import mmap
+import os
+import tempfile
+from typing import Any
+
+import torch
+
+__all__ = ["CACHE_ENV", "ROWS_DIR", "ROWS_FILE", "SEAL_FILE", "RowFile", "record_digest", "remove_rows", "rows_layout"]
+
+ROWS_DIR = "_rows"
+ROWS_FILE = "rows.bin"
+SEAL_FILE = "seal.json"
+SEAL_VERSION = 1
+#: the directory a reader's private row file goes to (default: the system's temporary directory)
+CACHE_ENV = "TORCHRL_ROBOTMEM_CACHE"
+_SERIAL = itertools.count(1)  # names a writer's own files apart within the process
+
+
+def record_digest(attrs: dict) -> str:
+    """The sha256 of a commit record's canonical JSON (keys sorted): what a seal binds the rows to.
+
+    Example:
+        >>> record_digest({"len": 1, "cursor": 1}) == record_digest({"cursor": 1, "len": 1})
+        True
+    """
+    text = json.dumps(attrs, sort_keys=True, separators=(",", ":"), allow_nan=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def rows_layout(layout: Any, shape: tuple[int, ...]) -> dict:
+    """What a seal binds the rows to: a :class:`~.schema.PackedLayout`'s row bytes and fields, and the rows' shape.
+
+    Example:
+        >>> from torchrl_robotmem.storage.schema import PackedLayout
+        >>> rows_layout(PackedLayout({"x": {"dtype": "float32", "shape": [2]}}), (10,))
+        {'row_bytes': 8, 'fields': [['x', 0, 8, 'float32', [2]]], 'shape': [10]}
+    """
+    fields = [[p, off, nbytes, str(dtype).removeprefix("torch."), list(shape_)]
+              for p, off, nbytes, dtype, shape_ in layout.fields]
+    return {"row_bytes": layout.row_bytes, "fields": fields, "shape": [int(s) for s in shape]}
+
+
+def remove_rows(directory: str | os.PathLike) -> bool:
+    """Deletes a local store's row files and seal (a cache: the next open fills it from the chunks).
+
+    Returns whether there was anything to delete. ``robotmem repair`` calls it.
+
+    Example:
+        >>> import tempfile
+        >>> remove_rows(tempfile.mkdtemp())
+        False
+    """
+    folder = os.path.join(os.fspath(directory), ROWS_DIR)
+    try:
+        names = os.listdir(folder)
+    except FileNotFoundError:
+        return False
+    for name in names:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(os.path.join(folder, name))
+    with contextlib.suppress(OSError):
+        os.rmdir(folder)
+    return True
+
+
+def _fsync_dir(path: str) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _lock(fd: int, how: int) -> bool:
+    try:
+        fcntl.flock(fd, how | fcntl.LOCK_NB)
+        return True
+    except OSError as err:
+        if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            return False
+        raise
+
+
+class RowFile:
+    """The file one open store maps its packed rows from, with its lock, and the seal it checks and writes.
+
+    Args:
+        directory (str or None): the local store's directory; ``None`` for a store with none (a URL store),
+            whose rows always go to a private file in the cache directory.
+
+    Keyword Args:
+        read_only (bool): a reader (maps the store's file copy-on-write, never writes the store).
+
+    Example:
+        >>> import tempfile
+        >>> rows = RowFile(None, read_only=True)
+        >>> rows.open({"len": 0}, layout=None)
+        False
+        >>> rows.map((2, 3), 8).shape
+        torch.Size([2, 3, 8])
+        >>> rows.release()
+    """
+
+    def __init__(self, directory: str | os.PathLike | None, *, read_only: bool) -> None:
+        self.folder = None if directory is None else os.path.join(os.fspath(directory), ROWS_DIR)
+        self.read_only = bool(read_only)
+        self.fd: int | None = None
+        self.name: str | None = None  # the path of the file in use (None: a private, unlinked file)
+        self.copy_on_write = False  # a reader mapping the store's sealed file
+        self.sealed = False  # the file in use holds the rows of the record it was opened for
+        self.open_ends: list[int] = []  # the seal's rows that end an episode left open (see ``seal``)
+        self.maps: list[mmap.mmap] = []  # the newest mappings (a growth maps again; older views keep theirs)
+        self.retired: int | None = None  # the file a new layout moved from (closed at release)
+
+    # -- choosing the file ---------------------------------------------------------------------
+
+    def open(self, attrs: dict, *, layout: dict | None) -> bool:
+        """Picks the file for the record ``attrs`` and locks it; returns whether it holds that record's rows.
+
+        ``layout`` is what :meth:`seal` was given for the rows (``None``: no rows yet, nothing to match).
+        """
+        self.release()
+        if self.folder is not None:
+            if self.read_only:
+                if self._open_shared(attrs, layout):
+                    return True
+            elif self._open_writer(attrs, layout):
+                return True
+        if self.fd is None:
+            self._open_private()
+        return False
+
+    def _open_shared(self, attrs: dict, layout: dict | None) -> bool:
+        """A reader: the store's file, if sealed for ``attrs`` and no writer writes it."""
+        path = os.path.join(self.folder, ROWS_FILE)
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:
+            return False  # no file, a link (ELOOP), no permission: fill a private one
+        if _lock(fd, fcntl.LOCK_SH):
+            seal = self._matching_seal(fd, attrs, layout)
+            if seal is not None:
+                self.fd, self.name, self.copy_on_write, self.sealed = fd, path, True, True
+                self.open_ends = [int(r) for r in seal.get("open_ends", [])]
+                return True
+        os.close(fd)
+        return False
+
+    def _open_writer(self, attrs: dict, layout: dict | None) -> bool:
+        """A writer: the store's file in place if no reader maps it, else a file of its own. Unseals first."""
+        os.makedirs(self.folder, exist_ok=True)
+        self._remove_stale()
+        path = os.path.join(self.folder, ROWS_FILE)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        if _lock(fd, fcntl.LOCK_EX) and os.fstat(fd).st_nlink == 1:
+            seal = self._matching_seal(fd, attrs, layout)
+            self._unseal()  # before the first write into the file: from now on it may run ahead of the commits
+            self.fd, self.name, self.sealed = fd, path, seal is not None
+            self.open_ends = [] if seal is None else [int(r) for r in seal.get("open_ends", [])]
+            return self.sealed
+        os.close(fd)  # mapped by a reader (or another name links it): never written in place
+        self._open_own()
+        return False
+
+    def _open_own(self) -> None:
+        """A writer's own file in the store's folder, renamed over ``rows.bin`` at its clean close."""
+        path = os.path.join(self.folder, f"rows.{os.getpid()}.{next(_SERIAL)}.bin")
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        self.fd, self.name, self.sealed = fd, path, False
+
+    def _open_private(self) -> None:
+        """A file nobody else sees, unlinked at once: a reader's rows (or a store without a directory)."""
+        folder = os.environ.get(CACHE_ENV) or tempfile.gettempdir()
+        os.makedirs(folder, exist_ok=True)
+        fd, path = tempfile.mkstemp(prefix="robotmem-rows-", suffix=".bin", dir=folder)
+        os.unlink(path)
+        self.fd, self.name, self.sealed = fd, None, False
+
+    def _remove_stale(self) -> None:
+        """Deletes the own files of writers that are gone (a killed writer leaves its ``rows.<pid>.*.bin``)."""
+        for name in os.listdir(self.folder):
+            if name == ROWS_FILE or not (name.startswith("rows.") and name.endswith((".bin", ".tmp"))):
+                continue
+            path = os.path.join(self.folder, name)
+            try:
+                fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+            except OSError:
+                continue
+            try:
+                if _lock(fd, fcntl.LOCK_EX):  # no live writer holds it
+                    os.unlink(path)
+            finally:
+                os.close(fd)
+
+    # -- the seal -----------------------------------------------------------------------------
+
+    def _seal_path(self) -> str:
+        return os.path.join(self.folder, SEAL_FILE)
+
+    def _matching_seal(self, fd: int, attrs: dict, layout: dict | None) -> dict | None:
+        """The seal, if it binds this file (``fd``) to the record ``attrs`` and ``layout``; else ``None``."""
+        if layout is None:
+            return None
+        try:
+            sfd = os.open(self._seal_path(), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:
+            return None
+        try:
+            with os.fdopen(sfd, "rb") as f:
+                seal = json.loads(f.read(1 << 20))
+        except (OSError, ValueError):
+            return None
+        st = os.fstat(fd)
+        want = {"version": SEAL_VERSION, "record": record_digest(attrs), "layout": layout,
+                "file": [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns]}
+        if not isinstance(seal, dict) or any(seal.get(k) != v for k, v in want.items()):
+            return None
+        if not isinstance(seal.get("open_ends", []), list):
+            return None
+        return seal
+
+    def _unseal(self) -> None:
+        try:
+            os.unlink(self._seal_path())
+        except FileNotFoundError:
+            return
+        _fsync_dir(self.folder)
+
+    def seal(self, attrs: dict, *, layout: dict, open_ends: list[int] = ()) -> None:
+        """A writer's clean close: makes the file durable, names it ``rows.bin`` and seals it for ``attrs``.
+
+        ``open_ends`` are the rows that end an episode left open (the next writer marks them done without
+        scanning the rows). Does nothing for a reader or a private file.
+        """
+        if self.read_only or self.folder is None or self.name is None or self.fd is None:
+            return
+        for m in self.maps[-1:]:
+            m.flush()
+        os.fsync(self.fd)
+        target = os.path.join(self.folder, ROWS_FILE)
+        if self.name != target:
+            os.replace(self.name, target)
+            self.name = target
+        st = os.fstat(self.fd)
+        seal = {"version": SEAL_VERSION, "record": record_digest(attrs), "layout": layout,
+                "file": [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns], "open_ends": [int(r) for r in open_ends]}
+        tmp = os.path.join(self.folder, f"seal.{os.getpid()}.tmp")
+        with open(tmp, "w") as f:
+            json.dump(seal, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self._seal_path())
+        _fsync_dir(self.folder)
+        self.sealed = True
+
+    # -- mapping ------------------------------------------------------------------------------
+
+    def map(self, shape: tuple[int, ...], row_bytes: int, *, new_file: bool = False) -> torch.Tensor:
+        """The packed rows ``[*shape, row_bytes]`` as a ``uint8`` tensor over the file (grown if smaller).
+
+        ``new_file``: the rows get a layout of their own (a column added), in a file of their own; the
+        caller copies the old rows over from the views it holds.
+        """
+        if new_file:
+            self._switch_file()
+        nbytes = math.prod(shape) * int(row_bytes)
+        size = os.fstat(self.fd).st_size
+        if self.copy_on_write:
+            if size < nbytes:
+                raise RuntimeError(f"the sealed row file {self.name!r} holds {size} bytes, not {nbytes}")
+            access = mmap.ACCESS_COPY  # a reader's writes (none are made) would stay in its own pages
+        else:
+            if size < nbytes:
+                os.ftruncate(self.fd, nbytes)  # sparse: the disk is taken as rows arrive
+            access = mmap.ACCESS_WRITE
+        m = mmap.mmap(self.fd, max(nbytes, 1), access=access)
+        self.maps = [*self.maps[-1:], m]  # older mappings stay alive through the views that use them
+        return torch.frombuffer(m, dtype=torch.uint8, count=nbytes).view(*shape, int(row_bytes))
+
+    def _switch_file(self) -> None:
+        """Moves to a fresh file (a new layout): the old one's lock is released once the rows are copied."""
+        if self.retired is not None:
+            with contextlib.suppress(OSError):
+                fcntl.flock(self.retired, fcntl.LOCK_UN)
+                os.close(self.retired)
+        old = self.fd
+        if self.read_only or self.folder is None:
+            self._open_private()
+        else:
+            self._open_own()
+        self.copy_on_write = False
+        self.retired = old  # closed at release (the old views still map it until the copy is done)
+
+    def release(self) -> None:
+        """Releases the file and its lock (mapped views stay readable until dropped). Idempotent."""
+        for fd in (self.fd, self.retired):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    fcntl.flock(fd, fcntl.LOCK_UN)  # a mapping shares the lock (mmap keeps a dup of fd)
+                    os.close(fd)
+        self.fd, self.retired, self.maps, self.copy_on_write = None, None, [], False
+
+    def describe(self) -> dict[str, Any]:
+        """Where the rows are mapped from: ``{"file", "sealed", "shared"}`` (for ``summary`` and tests).
+
+        Example:
+            >>> rows = RowFile(None, read_only=True); _ = rows.open({}, layout=None)
+            >>> rows.describe()["file"] is None
+            True
+            >>> rows.release()
+        """
+        return {"file": self.name, "sealed": self.sealed, "shared": self.copy_on_write}
