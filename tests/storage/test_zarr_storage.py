@@ -251,8 +251,10 @@ def test_batched_collector_output_warns_with_a_fix(tmp_path, transitions):
 
 
 def test_bad_paths_and_versions(tmp_path, transitions):
+    with ZarrStorage(tmp_path / "new.zarr") as grows:  # no max_size: a memory without a declared capacity
+        assert not grows.bounded
     with pytest.raises(ValueError, match="max_size"):
-        ZarrStorage(tmp_path / "new.zarr")
+        ZarrStorage(tmp_path / "nd.zarr", ndim=2)  # one that grows stores a transition a row
     (tmp_path / "not_a_store").mkdir()
     (tmp_path / "not_a_store" / "data.txt").write_text("hello")
     with pytest.raises(ValueError, match="not a Zarr store"):

@@ -40,7 +40,7 @@ from zarr.core.sync import sync as zarr_sync
 
 from . import _backend
 from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
-from .format import writing_config
+from .format import writing_config, writing_handles
 from .journal import replay_journal, write_journal
 
 __all__ = ["CommitEngine"]
@@ -387,8 +387,8 @@ class CommitEngine:
 
     def _array(self, path: str) -> Any:
         arr = self.arrays.get(path)
-        if arr is None:
-            arr = self.arrays[path] = self.group[path]
+        if arr is None:  # reopened (after a growth): a handle that writes all-zero chunks too, as every other
+            arr = self.arrays[path] = writing_handles(self.group, [path])[path]
         return arr
 
     def _write_chunks(self, payload: dict[int, dict[str, np.ndarray]], prefix: str = "") -> None:

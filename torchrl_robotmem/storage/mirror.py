@@ -137,8 +137,6 @@ class RamMirror:
             same = old is not None and self.mapped_layout is not None and \
                 {**self.mapped_layout, "shape": None} == {**layout, "shape": None} and \
                 self.mapped_layout["shape"][1:] == layout["shape"][1:]
-            if self.rows.fd is None:
-                self.rows.open({}, layout=None)
             self.packed = self.rows.map(shape, self.layout.row_bytes, new_file=old is not None and not same)
             self.mapped_layout = layout
             if same:

@@ -161,6 +161,7 @@ class RowFile:
         self.open_ends: list[int] = []  # the seal's rows that end an episode left open (see ``seal``)
         self.maps: list[mmap.mmap] = []  # the newest mappings (a growth maps again; older views keep theirs)
         self.retired: int | None = None  # the file a new layout moved from (closed at release)
+        self.made_folder = False  # this handle made ``_rows/`` (an open that fails removes it again)
 
     # -- choosing the file ---------------------------------------------------------------------
 
@@ -174,10 +175,9 @@ class RowFile:
             if self.read_only:
                 if self._open_shared(attrs, layout):
                     return True
-            elif self._open_writer(attrs, layout):
-                return True
-        if self.fd is None:
-            self._open_private()
+            else:
+                return self._open_writer(attrs, layout)  # a file of its own is made when the rows are mapped
+        self._open_private()
         return False
 
     def _open_shared(self, attrs: dict, layout: dict | None) -> bool:
@@ -197,23 +197,51 @@ class RowFile:
         return False
 
     def _open_writer(self, attrs: dict, layout: dict | None) -> bool:
-        """A writer: the store's file in place if no reader maps it, else a file of its own. Unseals first."""
-        os.makedirs(self.folder, exist_ok=True)
-        self._remove_stale()
+        """A writer: the store's file, in place, if sealed for ``attrs`` and no reader maps it.
+
+        Anything else gets a file of its own when the rows are mapped (:meth:`map`), renamed over
+        ``rows.bin`` at the clean close: an open that fails after this leaves the store as it found it.
+        Nothing is written here; :meth:`claim` unseals once the open succeeded.
+        """
         path = os.path.join(self.folder, ROWS_FILE)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:
+            return False  # none yet (or not a file this writer may use)
         if _lock(fd, fcntl.LOCK_EX) and os.fstat(fd).st_nlink == 1:
             seal = self._matching_seal(fd, attrs, layout)
-            self._unseal()  # before the first write into the file: from now on it may run ahead of the commits
-            self.fd, self.name, self.sealed = fd, path, seal is not None
-            self.open_ends = [] if seal is None else [int(r) for r in seal.get("open_ends", [])]
-            return self.sealed
-        os.close(fd)  # mapped by a reader (or another name links it): never written in place
-        self._open_own()
+            if seal is not None:
+                self.fd, self.name, self.sealed = fd, path, True
+                self.open_ends = [int(r) for r in seal.get("open_ends", [])]
+                return True
+        os.close(fd)  # stale, mapped by a reader, or linked under another name: never written in place
         return False
+
+    def claim(self) -> None:
+        """A writer whose open succeeded: removes the seal before its first write into the file (from then on
+        the file may run ahead of the commits) and the own files of writers that are gone."""
+        if self.read_only or self.folder is None or not os.path.isdir(self.folder):
+            return
+        if self.name == os.path.join(self.folder, ROWS_FILE):
+            self._unseal()
+        self._remove_stale()
+
+    def discard(self) -> None:
+        """An open that failed: deletes the file of its own this open made, releases the rest."""
+        own = self.name if self.name is not None and not self.name.endswith(os.sep + ROWS_FILE) else None
+        self.release()
+        if own is not None and not self.read_only:
+            with contextlib.suppress(OSError):
+                os.unlink(own)
+        if self.made_folder:
+            with contextlib.suppress(OSError):
+                os.rmdir(self.folder)
 
     def _open_own(self) -> None:
         """A writer's own file in the store's folder, renamed over ``rows.bin`` at its clean close."""
+        if not os.path.isdir(self.folder):
+            os.mkdir(self.folder)
+            self.made_folder = True
         path = os.path.join(self.folder, f"rows.{os.getpid()}.{next(_SERIAL)}.bin")
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
         fcntl.flock(fd, fcntl.LOCK_EX)
@@ -314,6 +342,8 @@ class RowFile:
         """
         if new_file:
             self._switch_file()
+        elif self.fd is None:  # a writer's first mapping, or a reader's
+            self._open_private() if self.read_only or self.folder is None else self._open_own()
         nbytes = math.prod(shape) * int(row_bytes)
         size = os.fstat(self.fd).st_size
         if self.copy_on_write:

@@ -74,7 +74,12 @@ class MemoryStore:
             raise
 
     def abandon(self, previous) -> None:
-        """An open that failed: releases the store and gives the writer back to ``previous``."""
+        """An open that failed: releases the store and gives the writer back to ``previous``.
+
+        A row file this open made is deleted: a refused open leaves the store as it found it.
+        """
+        if self.rows is not None:
+            self.rows.discard()
         self.release()
         if previous is not None:
             previous.take_back(self.handle)
@@ -142,6 +147,8 @@ class MemoryStore:
         if self.goal_conditioned != self.recorded_goal_conditioned:
             self.engine.update_attrs({GOAL_CONDITIONED: self.goal_conditioned})
             self.recorded_goal_conditioned = self.goal_conditioned
+        if self.rows is not None:
+            self.rows.claim()  # unsealed before the first write into the row file
         if self.engine.worker_path is not None:
             CommitWorker.get()  # started now, not at build: its imports overlap the first writes, not the open's reads
         self.engine.arrays.update(writing_handles(self.handle.group, self.mirror.schema or ()))

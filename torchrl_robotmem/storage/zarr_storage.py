@@ -186,6 +186,16 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         return self._mirror.max_size
 
     @property
+    def row_file(self) -> dict | None:
+        """Where the rows are mapped from: ``{"file", "sealed", "shared"}``, or ``None`` (rows in RAM).
+
+        ``file``: the row file (``None``: a private, unlinked one); ``sealed``: it held the opened record's
+        rows (the open read no chunk); ``shared``: this reader maps the store's own file (copy-on-write).
+        """
+        rows = self._store.rows
+        return None if rows is None else rows.describe()
+
+    @property
     def env_names(self) -> tuple[str, ...]:
         """Environment names; the ``"env"`` column holds indices into this tuple (-1: unknown)."""
         return tuple(self._tags.env_names)

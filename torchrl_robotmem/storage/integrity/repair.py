@@ -31,6 +31,7 @@ from ..errors import IntegrityError, LinkError, Problem
 from ..format import BACKUP_DIR, FORMAT_MARKER, dims, numel, writing_config
 from ..journal import replay_journal
 from ..rowfile import remove_rows
+from .rows import row_file_problems
 from .arrays import disagreement
 from .attributes import bad_attributes, check_attributes, is_int, unsafe_path
 from .capacity import capacity_problem
@@ -138,6 +139,10 @@ def repair(path: Any, *, mode: str = "truncate", storage_options: dict | None = 
     try:
         before = verify(path, storage_options=storage_options)  # under the lock: no writer changes it meanwhile
         if before.ok:
+            if not dry_run and local_dir is not None and any(p.severity == "error" for p in row_file_problems(local_dir)) \
+                    and remove_rows(local_dir):
+                return RepairReport(before, before, ["deleted the row file (_rows/), which differs from the committed "
+                                                     "chunks: the next open fills it from them"])
             return RepairReport(before, before)
         if any(p.kind == "format" for p in before.problems):
             raise IntegrityError(before.path, before.errors, action="repair does not touch a store of a newer format:")
@@ -231,7 +236,7 @@ def _refusals(before: IntegrityReport, store: Any, local_dir: Any) -> dict[str, 
 
 def _repair(before, store, local_dir, path, storage_options, dry_run, metas) -> RepairReport:
     mend = _Mend(before, store, local_dir, dry_run)
-    if not dry_run and local_dir is not None and before.problems and remove_rows(local_dir):
+    if not dry_run and local_dir is not None and remove_rows(local_dir):
         # the row file is a cache of the chunks being mended: the next open fills it from the mended ones
         mend.actions.append("deleted the row file (_rows/): the next open fills it from the mended chunks")
     mend.run(metas)

@@ -1,0 +1,253 @@
+"""The row tier (issue 41): rows mapped from ``_rows/rows.bin``, served without a chunk read when sealed, and a
+memory without a declared capacity.
+
+Real stores under ``tmp_path``; crash and cgroup cases are in ``tests/reliability/test_row_tier_faults.py``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
+
+from torchrl_robotmem import WindowSampler, ZarrStorage
+from torchrl_robotmem.storage.checkpointer import ZarrCheckpointer
+from torchrl_robotmem.storage.integrity import repair, verify
+from torchrl_robotmem.storage.integrity.rows import row_file_problems
+from torchrl_robotmem.storage.rowfile import ROWS_DIR, SEAL_FILE
+
+CHUNK = 64
+
+
+def _rows(lo: int, hi: int) -> TensorDict:
+    """Rows whose values say which row they are (row ``i`` holds ``i``)."""
+    i = torch.arange(lo, hi, dtype=torch.float32)
+    return TensorDict({"obs": i[:, None].expand(-1, 3).clone(), "action": -i[:, None],
+                       ("next", "done"): torch.zeros(hi - lo, 1, dtype=torch.bool)}, [hi - lo])
+
+
+def _write(path, n: int, **kwargs) -> None:
+    with ZarrStorage(path, kwargs.pop("max_size", 1000), chunk_rows=CHUNK, goal_conditioned=False, **kwargs) as st:
+        st.set(torch.arange(n), _rows(0, n))
+
+
+def _seal(path) -> dict:
+    with open(os.path.join(path, ROWS_DIR, SEAL_FILE)) as f:
+        return json.load(f)
+
+
+def test_a_clean_close_seals_the_rows_and_an_open_serves_them_without_a_chunk(tmp_path):
+    """Every chunk file moved away after the seal: a sealed open still serves every row (it reads none)."""
+    path = str(tmp_path / "m.zarr")
+    _write(path, 4 * CHUNK)
+    assert _seal(path)["layout"]["shape"] == [1000]
+    for node in ("obs", "action", "next/done"):
+        shutil.rmtree(os.path.join(path, node, "c"))  # what is served is the row file, not the chunks
+    for read_only in (True, False):
+        with ZarrStorage(path, read_only=read_only) as st:
+            assert st.row_file == {"file": os.path.join(os.path.realpath(path), ROWS_DIR, "rows.bin"),
+                                   "sealed": True, "shared": read_only}
+            assert torch.equal(st["obs"], _rows(0, 4 * CHUNK)["obs"])
+        assert not verify(path).ok  # the damage is verify's to find: it reads every chunk
+
+
+def test_without_a_seal_the_open_fills_the_rows_from_the_chunks(tmp_path):
+    path = str(tmp_path / "m.zarr")
+    _write(path, 3 * CHUNK)
+    os.remove(os.path.join(path, ROWS_DIR, SEAL_FILE))
+    with ZarrStorage(path, read_only=True) as st:
+        assert st.row_file["sealed"] is False and st.row_file["file"] is None  # a private, unlinked file
+        assert torch.equal(st["action"], _rows(0, 3 * CHUNK)["action"])
+
+
+@pytest.mark.parametrize("change", ["bytes", "grown", "record", "layout", "other_store", "garbage"])
+def test_a_row_file_that_does_not_match_its_seal_is_filled_again_never_served(tmp_path, change):
+    path = str(tmp_path / "m.zarr")
+    n = 2 * CHUNK
+    _write(path, n)
+    rows_bin = os.path.join(path, ROWS_DIR, "rows.bin")
+    seal_path = os.path.join(path, ROWS_DIR, SEAL_FILE)
+    seal = _seal(path)
+    if change == "bytes":  # written since the seal (its modification time moves)
+        with open(rows_bin, "r+b") as f:
+            f.seek(8)
+            f.write(b"\xff" * 64)
+        st_ = os.stat(rows_bin)
+        os.utime(rows_bin, ns=(st_.st_atime_ns, st_.st_mtime_ns + 1_000_000))
+    elif change == "grown":
+        with open(rows_bin, "ab") as f:
+            f.write(b"\0" * 4096)
+    elif change == "record":
+        seal["record"] = "0" * 64
+    elif change == "layout":
+        seal["layout"]["row_bytes"] += 8
+    elif change == "other_store":  # the seal of another memory with the same columns, copied over
+        other = str(tmp_path / "other.zarr")
+        _write(other, n + 1)
+        seal = _seal(other)
+    if change == "garbage":
+        with open(seal_path, "w") as f:
+            f.write("{not json")
+    elif change in ("record", "layout", "other_store"):
+        with open(seal_path, "w") as f:
+            json.dump(seal, f)
+    with ZarrStorage(path, read_only=True) as st:
+        assert st.row_file["sealed"] is False
+        assert torch.equal(st["obs"], _rows(0, n)["obs"])
+        assert torch.equal(st["action"], _rows(0, n)["action"])
+
+
+def test_verify_rows_finds_a_row_file_rewritten_with_its_seal(tmp_path):
+    """A row file and seal both rewritten (someone who can write the store): served, and found by verify --rows."""
+    path = str(tmp_path / "m.zarr")
+    _write(path, 2 * CHUNK)
+    rows_bin = os.path.join(path, ROWS_DIR, "rows.bin")
+    seal = _seal(path)
+    with open(rows_bin, "r+b") as f:
+        f.write(b"\x7f" * 8)
+    st_ = os.stat(rows_bin)
+    seal["file"] = [st_.st_dev, st_.st_ino, st_.st_size, st_.st_mtime_ns]
+    with open(os.path.join(path, ROWS_DIR, SEAL_FILE), "w") as f:
+        json.dump(seal, f)
+    problems = row_file_problems(path)
+    assert problems and all(p.kind == "rows" and p.rows == (0, CHUNK) for p in problems)
+    report = repair(path)
+    assert any("row file" in a for a in report.actions) or not os.path.exists(rows_bin)
+    assert row_file_problems(path) == []
+    with ZarrStorage(path, read_only=True) as st:
+        assert torch.equal(st["obs"], _rows(0, 2 * CHUNK)["obs"])
+
+
+def test_a_reader_keeps_its_rows_while_a_writer_writes_and_closes(tmp_path):
+    """The writer cannot lock the reader's file: it writes its own and renames it over at its close."""
+    path = str(tmp_path / "m.zarr")
+    _write(path, CHUNK)
+    reader = ZarrStorage(path, read_only=True)
+    assert reader.row_file["sealed"]
+    with ZarrStorage(path) as writer:
+        assert writer.row_file["file"] != reader.row_file["file"]
+        writer.set(torch.arange(CHUNK), _rows(500, 500 + CHUNK))  # overwrites the reader's rows
+        writer.flush()
+        assert torch.equal(reader["obs"], _rows(0, CHUNK)["obs"])
+    assert torch.equal(reader["obs"], _rows(0, CHUNK)["obs"]) and len(reader) == CHUNK
+    assert sorted(os.listdir(os.path.join(path, ROWS_DIR))) == ["rows.bin", SEAL_FILE]
+    with ZarrStorage(path, read_only=True) as fresh:
+        assert fresh.row_file["sealed"] and torch.equal(fresh["obs"][:CHUNK], _rows(500, 500 + CHUNK)["obs"])
+    reader.close()
+
+
+def test_a_writer_reopening_a_sealed_store_continues_in_place_and_closes_episodes(tmp_path):
+    path = str(tmp_path / "m.zarr")
+    _write(path, CHUNK)  # one episode, left open (no done)
+    with ZarrStorage(path) as st:
+        assert st.row_file["sealed"] and st.row_file["file"].endswith("rows.bin")
+        assert bool(st["next", "done"][CHUNK - 1])  # the episode the last run left open is ended, from the seal
+        st.set(torch.arange(CHUNK, 2 * CHUNK), _rows(CHUNK, 2 * CHUNK))
+        assert not os.path.exists(os.path.join(path, ROWS_DIR, SEAL_FILE))  # unsealed before the first write
+    with ZarrStorage(path, read_only=True) as st:
+        assert len(st) == 2 * CHUNK and torch.equal(st["obs"], _rows(0, 2 * CHUNK)["obs"])
+
+
+def test_a_new_column_moves_the_rows_to_a_new_file(tmp_path):
+    path = str(tmp_path / "m.zarr")
+    _write(path, CHUNK)
+    with ZarrStorage(path) as st:
+        st.set(torch.arange(CHUNK, CHUNK + 4), _rows(CHUNK, CHUNK + 4).update({"extra": torch.ones(4, 2)}))
+    with ZarrStorage(path, read_only=True) as st:
+        assert st.row_file["sealed"]
+        assert torch.equal(st["obs"], _rows(0, CHUNK + 4)["obs"])
+        assert st["extra"][:CHUNK].abs().sum() == 0 and bool((st["extra"][CHUNK:] == 1).all())
+
+
+def test_copies_and_checkpoints_leave_the_row_file_out(tmp_path):
+    from torchrl_robotmem.cli.copy_memory import copy_memory
+
+    path = str(tmp_path / "m.zarr")
+    _write(path, CHUNK)
+    copy_memory(path, str(tmp_path / "copy.zarr"))
+    assert not os.path.exists(tmp_path / "copy.zarr" / ROWS_DIR) or not os.path.exists(
+        tmp_path / "copy.zarr" / ROWS_DIR / SEAL_FILE)
+    rb = ReplayBuffer(storage=ZarrStorage(path))
+    rb.dumps(tmp_path / "ckpt")
+    rb.storage.close()
+    copies = [root for root, dirs, _ in os.walk(tmp_path / "ckpt") if ROWS_DIR in dirs]
+    assert copies == []  # a writer writes its row file in place: a hard link to it would change with it
+    ZarrCheckpointer  # noqa: B018 - the checkpointer that made the copy
+
+
+# -- a memory without a declared capacity -------------------------------------------------------
+
+
+def test_a_memory_without_a_capacity_grows_and_never_wraps(tmp_path):
+    path = str(tmp_path / "u.zarr")
+    st = ZarrStorage(path, chunk_rows=CHUNK, goal_conditioned=False)
+    assert st.bounded is False and st.max_size > 2**40
+    rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+    capacities = set()
+    for lo in range(0, 60 * CHUNK, 40):
+        rb.extend(_rows(lo, lo + 40))
+        capacities.add(st.capacity)
+    assert len(st) == 60 * CHUNK and len(capacities) > 2  # it grew, several times
+    assert torch.equal(st["obs"], _rows(0, 60 * CHUNK)["obs"])  # every row kept: no ring
+    st.close()
+    with ZarrStorage(path, read_only=True) as r:
+        assert r.row_file["sealed"] and not r.bounded and torch.equal(r["action"], _rows(0, 60 * CHUNK)["action"])
+    with ZarrStorage(path) as w:
+        TensorDictReplayBuffer(storage=w).extend(_rows(60 * CHUNK, 61 * CHUNK))
+        assert len(w) == 61 * CHUNK and w.write_count == 61 * CHUNK
+    assert ZarrStorage(path, read_only=True).record()["torchrl_robotmem"]["format_version"] == 2
+    with pytest.raises(ValueError, match="no declared capacity"):
+        ZarrStorage(path, 100)
+
+
+def test_a_bounded_memory_keeps_its_ring_and_format_1(tmp_path):
+    path = str(tmp_path / "b.zarr")
+    with ZarrStorage(path, 2 * CHUNK, chunk_rows=CHUNK, goal_conditioned=False) as st:
+        rb = TensorDictReplayBuffer(storage=st)
+        rb.extend(_rows(0, 3 * CHUNK))
+        assert st.bounded and st.capacity == 2 * CHUNK and len(st) == 2 * CHUNK
+        assert st.record()["torchrl_robotmem"]["format_version"] == 1
+        assert torch.equal(st["obs"][:CHUNK], _rows(2 * CHUNK, 3 * CHUNK)["obs"])
+
+
+def test_window_sampler_reads_the_newest_rows_of_a_growing_memory(tmp_path):
+    torch.manual_seed(0)
+    st = ZarrStorage(str(tmp_path / "w.zarr"), chunk_rows=CHUNK, goal_conditioned=False)
+    rb = TensorDictReplayBuffer(storage=st, sampler=WindowSampler(32), batch_size=256)
+    for lo in range(0, 10 * CHUNK, 100):
+        rb.extend(_rows(lo, lo + 100))
+        got = rb.sample()["obs"][:, 0]
+        assert got.min() >= len(st) - 32 and got.max() < len(st)
+    st.close()
+
+
+def test_a_tailing_reader_follows_a_growing_memory(tmp_path):
+    path = str(tmp_path / "t.zarr")
+    writer = ZarrStorage(path, chunk_rows=CHUNK, goal_conditioned=False)
+    writer.set(torch.arange(CHUNK), _rows(0, CHUNK))
+    writer.flush()
+    reader = ZarrStorage(path, read_only=True)
+    assert len(reader) == CHUNK
+    writer.set(torch.arange(CHUNK, 5 * CHUNK), _rows(CHUNK, 5 * CHUNK))
+    writer.flush()
+    assert reader.refresh() == 5 * CHUNK
+    assert torch.equal(reader["obs"], _rows(0, 5 * CHUNK)["obs"])
+    writer.close()
+    reader.close()
+
+
+def test_lazy_tensor_storage_and_an_unbounded_memory_sample_alike(tmp_path):
+    """The same rows, extended the same way: the same sampled rows for the same seed."""
+    zarr = ZarrStorage(str(tmp_path / "s.zarr"), chunk_rows=CHUNK, goal_conditioned=False)
+    out = []
+    for storage in (LazyTensorStorage(10_000), zarr):
+        torch.manual_seed(3)
+        rb = TensorDictReplayBuffer(storage=storage, batch_size=16)
+        rb.extend(_rows(0, 300))
+        out.append(rb.sample()["obs"])
+    assert torch.equal(out[0], out[1])
+    zarr.close()
