@@ -31,12 +31,12 @@ from ..errors import IntegrityError, LinkError, Problem
 from ..format import BACKUP_DIR, FORMAT_MARKER, dims, numel, writing_config
 from ..journal import replay_journal
 from ..rowfile import remove_rows
-from .rows import row_file_problems
 from .arrays import disagreement
 from .attributes import bad_attributes, check_attributes, is_int, unsafe_path
 from .capacity import capacity_problem
 from .files import array_metas, delete_key, get_bytes, open_any, read_group_attrs, set_bytes
 from .rebuild import data_problems, rebuild_array_meta, rebuild_attrs, ring_cursor, tag_maxima, written_extent
+from .rows import row_file_problems
 from .verify import IntegrityReport, verify
 
 __all__ = ["RepairReport", "repair"]
