@@ -161,6 +161,15 @@ def _file_column(path: Path, key: str, rows: slice) -> np.ndarray:
     return raw[rows, off:off + nbytes].copy().view(dtype)
 
 
+def _in_store_folder(file: str | None, path: Path) -> bool:
+    """Whether a writer's row file is the store's (``_rows/rows.bin``) or one of its own beside it."""
+    return file is not None and Path(file).parent == path / "_rows" and Path(file).name.startswith("rows.")
+
+
+def _row_folder(path: Path) -> list[str]:
+    return sorted(p.name for p in (path / "_rows").iterdir())
+
+
 def _hash_tree(root: Path) -> dict[str, str]:
     """``{relative path: sha256, or "-> target" for a link}`` of every file below ``root`` (no link followed)."""
     out = {}
@@ -206,10 +215,11 @@ def test_writer_of_a_new_store_killed_after_flushes(tmp_path):
     path = tmp_path / "new.zarr"
     msgs = _run(tmp_path, "fresh_writer_kill", killed=True, path=str(path), flushes=3, batch=50, tail=30)
     W = msgs[-1]["flushed"]
-    assert W == 150 and msgs[-1]["rows"]["file"] == str(path / "_rows" / "rows.bin")
+    assert W == 150 and _in_store_folder(msgs[-1]["rows"]["file"], path), msgs[-1]
     assert not (path / "_rows" / "seal.json").exists(), "a killed writer left a seal"
     _check(path, torch.arange(W), read_only=True, sealed=False)
     _check(path, torch.arange(W), read_only=False, sealed=False)
+    assert _row_folder(path) == ["rows.bin", "seal.json"], "the next writer left the dead writer's files"
     _check(path, torch.arange(W), read_only=True, sealed=True)  # the writable open above closed cleanly
 
 
@@ -230,11 +240,12 @@ def test_killed_right_after_filling_the_rows(tmp_path, read_only):
         assert filled["rows"]["file"] is None, f"a reader filled a file others can see: {filled}"
         assert _hash_tree(path) == before, "a reader changed the store"
     else:
-        assert filled["rows"]["file"] == str(path / "_rows" / "rows.bin"), filled
+        assert _in_store_folder(filled["rows"]["file"], path), filled
         assert not (path / "_rows" / "seal.json").exists(), "a killed writer left a seal"
     # the writer's open closed no episode before the kill: the rows are the committed ones, as written
     _check(path, torch.arange(200), read_only=True, sealed=False)
     _check(path, torch.arange(200), read_only=False, sealed=False)
+    assert _row_folder(path) == ["rows.bin", "seal.json"], "the next writer left the dead writer's files"
     _check(path, torch.arange(200), read_only=True, sealed=True)
 
 
@@ -433,7 +444,7 @@ def test_writer_killed_while_a_reader_maps_the_file(tmp_path):
         _check(path, _ring_w(W), read_only=True, sealed=False)  # the seal binds the older record
         _check(path, _ring_w(W), read_only=False, sealed=False)
         assert not Path(own).exists(), "the next writer left the dead writer's row file"
-        assert [p.name for p in rows_bin.parent.iterdir() if p.name.startswith("rows.")] == ["rows.bin"]
+        assert _row_folder(path) == ["rows.bin", "seal.json"]
         _check(path, _ring_w(W), read_only=True, sealed=True)
         assert reader.refresh() == RING and not torn_or_wrong(reader[:RING], _ring_w(W))
     finally:
