@@ -811,33 +811,52 @@ def reach_second(root: Path) -> str:
 
 PNP43_CONTROL = Runs("SAC+HER from scratch", "pnp43-control-s{}", seeds=(0,))
 PNP43_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-propose-s{}", seeds=(0,))
+HAND43_CONTROL = Runs("SAC+HER from scratch", "hand43-control-s{}", seeds=(0,))
+HAND43_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "hand43-propose-s{}", seeds=(0,))
 
 
-def pnp_proposer_pilot(root: Path) -> str:
-    """Issue 43's pilot: FetchPickAndPlace from nothing, one seed an arm, the same recipe with and without the proposer
-    (archives ``pnp43-{control,propose}-s0.json``, the runs' summaries beside them)."""
+def _proposer_pilot(root: Path, control_arm: Runs, proposer_arm: Runs) -> tuple[str, str, dict]:
+    """One seed an arm, the same recipe with and without the proposer: the headline, the per-evaluation table and
+    the proposer's counters (``proposer`` of the run's summary, archived as ``<run>-summary.json`` beside it)."""
     from recipes.her.tools.paired import compare_arms
 
-    control, proposer = PNP43_CONTROL.read(root), PNP43_PROPOSER.read(root)
+    control, proposer = control_arm.read(root), proposer_arm.read(root)
     curves = {arm.label: arm_curve for arm, arm_curve in
-              ((PNP43_CONTROL, PNP43_CONTROL.curve(root, 0)), (PNP43_PROPOSER, PNP43_PROPOSER.curve(root, 0)))}
+              ((control_arm, control_arm.curve(root, 0)), (proposer_arm, proposer_arm.curve(root, 0)))}
     frames = sorted(next(iter(curves.values())))
     rows = [[label, *[f2(c[f]) for f in frames], cpu(arm.cpu[0])]
             for (label, c), arm in zip(curves.items(), (control, proposer))]
     t = table(["arm (seed 0)", *[kf(f) for f in frames], "CPU-s"], rows)
-    summary = json.loads((root / RUNS / "pnp43-propose-s0-summary.json").read_text())["proposer"]
+    name = proposer_arm.pattern.format(0)
+    summary = json.loads((root / RUNS / f"{name}-summary.json").read_text())["proposer"]
     ep = compare_arms(proposer.outcomes, control.outcomes)["test"]
     head = (f"**At {kf(frames[-1])} frames: {f2(proposer.values[0])} with the proposer, {f2(control.values[0])} "
             f"without** (one seed an arm: no run-level figure; episode-level, the same 50 goals: McNemar p = "
             f"{pv(ep['p'])}, {ep['a_only']} vs {ep['b_only']} discordant). The proposer chose the goal of "
             f"{summary['proposed']} training episodes ({summary['kept']} kept the env's own, before the memory held "
             f"`warmup_rows`), in {summary['seconds']:.2f} s of the run's {cpu(proposer.cpu[0])} CPU-s.")
+    return head, t, summary
+
+
+def pnp_proposer_pilot(root: Path) -> str:
+    """Issue 43's pilot: FetchPickAndPlace from nothing, one seed an arm, the same recipe with and without the proposer
+    (archives ``pnp43-{control,propose}-s0.json``, the runs' summaries beside them)."""
+    head, t, _ = _proposer_pilot(root, PNP43_CONTROL, PNP43_PROPOSER)
     return f"{head}\n\n{t}"
+
+
+def hand_proposer_pilot(root: Path) -> str:
+    """Issue 43's second pilot: HandReach from nothing, one seed an arm, 30k frames, with and without the proposer
+    (archives ``hand43-{control,propose}-s0.json``, the runs' summaries beside them)."""
+    head, t, summary = _proposer_pilot(root, HAND43_CONTROL, HAND43_PROPOSER)
+    per_goal = 1000 * summary["seconds"] / max(summary["proposed"], 1)
+    return (f"{head} That is {per_goal:.0f} ms a proposed goal. One seed, a pilot: no conclusion either way.\n\n{t}")
 
 
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "summary": summary,
     "pnp_proposer_pilot": pnp_proposer_pilot,
+    "hand_proposer_pilot": hand_proposer_pilot,
     "reach_second": reach_second,
     "push_clone": push_clone,
     "push_replay": push_replay,
