@@ -97,7 +97,8 @@ def _summarize(storage, *, cell: float, goal) -> dict[str, Any]:
         "kind": (attrs.get("kind") or {}).get("kind", "tensordict") if schema else None,
         "ndim": int(attrs.get("ndim", 1)),
         "rows": len(storage),
-        "max_size": int(storage.max_size),
+        "max_size": int(storage.max_size) if storage.bounded else None,  # None: no declared capacity (grows)
+        "capacity": int(storage.capacity),
         "full": bool(is_full(storage)),
         "write_count": int(attrs.get("write_count", 0)),
         "chunk_rows": attrs.get("chunk_rows"),
@@ -235,7 +236,10 @@ def format_summary(s: dict[str, Any]) -> str:
         f"memory        {s['path']}",
         f"format        v{fmt.get('format_version')} (torchrl_robotmem {fmt.get('library_version')}, "
         f"torchrl {fmt.get('torchrl_version')}, zarr {fmt.get('zarr_version')})",
-        f"rows          {s['rows']:,} of {s['max_size']:,}{' (full ring)' if s['full'] else ''}; "
+        (f"rows          {s['rows']:,} of {s['max_size']:,}{' (full ring)' if s['full'] else ''}; "
+         if s["max_size"] is not None else
+         f"rows          {s['rows']:,} (no declared capacity: grows; {s.get('capacity', 0):,} allocated); ")
+        +
         f"{s['write_count']:,} written; chunk {s['chunk_rows']} rows",
         f"episodes      {s['episodes']:,} ({s['finished_episodes']:,} finished)",
         f"runs          {s['runs']}",

@@ -484,7 +484,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         return self._store.summary(self.initialized, len(self), None if self._store.unbounded else self.max_size)
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}(path={self.path!r}, len={len(self)}, max_size={self.max_size}, "
+        size = self.max_size if self.bounded else None
+        return (f"{type(self).__name__}(path={self.path!r}, len={len(self)}, max_size={size}, "
                 f"read_only={self.read_only}, envs={list(self._tags.env_names)})")
 
 
