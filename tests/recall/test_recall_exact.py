@@ -131,7 +131,7 @@ def test_exact_after_appends_ring_overwrites_and_inplace_writes():
             name for name in ("mid", "live") if getattr(view, name) is not None
         )
         seen_levels.update({"stale"} if view.main.n_stale else set())
-    assert rb.storage._is_full
+    assert len(rb.storage) == rb.storage.max_size
     assert seen_levels == {"mid", "live", "stale"}  # every incremental path ran
     # in-place writes (not through the writer's cursor)
     rows = torch.tensor([5, 17, 2500])
@@ -172,7 +172,7 @@ def test_filtered_views_exact_after_ring_overwrites(flt, backend):
         seen_levels.update(name for name in ("mid", "live") if getattr(view, name) is not None)
         seen_levels.update({"stale"} if view.main.n_stale else set())
         builds.append(view.builds)
-    assert rb.storage._is_full
+    assert len(rb.storage) == rb.storage.max_size
     assert seen_levels == {"mid", "live", "stale"}, seen_levels  # every incremental path ran
     assert builds[-1] < len(builds), builds  # most steps were incremental, not rebuilds
 
@@ -468,7 +468,7 @@ def test_index_pickles_and_rebuilds_lazily():
     queries = torch.rand(4, 3, generator=gen)
     expected = index.search(queries, 3)
     clone = pickle.loads(pickle.dumps(index))
-    assert clone._views == {} and clone.tail_size == 64
+    assert clone.stats()["views"] == 0 and clone.tail_size == 64
     for a, b in zip(clone.search(queries, 3), expected):
         assert torch.equal(a, b)
 

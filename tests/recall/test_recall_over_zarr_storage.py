@@ -106,7 +106,7 @@ def test_exact_after_extends_and_ring_overwrites(tmp_path):
         view = index._views[(False, None, None)]
         paths.update(name for name in ("mid", "live") if getattr(view, name) is not None)
         paths.update({"stale"} if view.main.n_stale else set())
-    assert st._is_full and st._store.write_count == 40 * 50 >= 3 * st.max_size
+    assert len(st) == st.max_size and st.write_count == 40 * 50 >= 3 * st.max_size
     assert paths == {"mid", "live", "stale"}
     # in-place writes through the storage (not the writer's cursor) are seen too
     rows = torch.tensor([3, 311, 599])
@@ -141,7 +141,7 @@ def test_same_answers_after_close_and_reopen(tmp_path):
 
     for read_only in (False, True):
         reopened = ZarrStorage(path, read_only=read_only, sample_tags=True)
-        assert len(reopened) == 500 and reopened._store.cursor == 250
+        assert len(reopened) == 500 and reopened.state_dict()["zarr"]["cursor"] == 250
         assert (reopened._storage[: len(reopened)] == rows_before).all()
         assert_same_answers(answers(GoalIndex(reopened), reopened, queries), before)
         again = recall(reopened, queries, 5)  # module-level: a fresh index for the new storage object
@@ -330,7 +330,7 @@ def _state(rb):
     disk = zarr.open_group(str(st.path), mode="r")
     return {
         "len": len(st),
-        "cursor": (st._store.cursor, rb.writer._cursor, st._store.write_count),
+        "cursor": (st.state_dict()["zarr"]["cursor"], rb.writer._cursor, st.write_count),
         "revision": int(st._mutation_revision),
         "env_names": st.env_names,
         "rows": st._storage[: len(st)].clone(),

@@ -155,7 +155,7 @@ def test_one_per_episode_matches_brute_force_through_ring_overwrites(tmp_path):
     for step in range(9):  # 9 * 300 rows through a 1200-row ring: episodes are cut by the wrap
         rb.extend(clustered_rows(300, gen, start=300 * step))
         assert_one_per_episode(index, storage, queries, 5)
-    assert storage._is_full
+    assert len(storage) == storage.max_size
     success = column(storage, SUCCESS) > 0.5
     assert_one_per_episode(index, storage, queries, 4, keep=success, success_only=True)
     assert_one_per_episode(index, storage, queries, 6, max_distance=0.2)

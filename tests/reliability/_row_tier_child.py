@@ -53,14 +53,14 @@ def ring_overwrite_kill(path, conn, extra, overwrite, **_):
     st = ZarrStorage(path, commit_interval=3600, env=ENV)
     rb = _buffer(st)
     w = int(rb.writer._write_count)
-    conn.send({"opened_at": w, "rows": st._store.rows.describe(), "sealed_at_open": st._store.rows_sealed,
+    conn.send({"opened_at": w, "rows": st.row_file, "sealed_at_open": st.row_file["sealed"],
                "seal_left": os.path.exists(os.path.join(path, "_rows", "seal.json"))})
     rb.extend(make_rows(torch.arange(w, w + extra)))
     st.flush()
     w += extra
     with st._engine.cv:  # no commit from here on (see the module docstring)
         rb.extend(make_rows(torch.arange(w, w + overwrite)))
-        conn.send({"flushed": w, "written": w + overwrite, "rows": st._store.rows.describe()})
+        conn.send({"flushed": w, "written": w + overwrite, "rows": st.row_file})
         _kill_self()
 
 
@@ -77,7 +77,7 @@ def fresh_writer_kill(path, conn, flushes, batch, tail, **_):
         w += batch
     with st._engine.cv:
         rb.extend(make_rows(torch.arange(w, w + tail)))
-        conn.send({"flushed": w, "written": w + tail, "rows": st._store.rows.describe()})
+        conn.send({"flushed": w, "written": w + tail, "rows": st.row_file})
         _kill_self()
 
 
@@ -131,7 +131,7 @@ def unbounded_grow_kill(path, conn, flush_at, last, kill_at, **_):
     with engine.cv:  # (released while the growth's own flush waits: everything before it is committed)
         rb.extend(make_rows(torch.arange(w, last)))
         conn.send({"killed": "written", "capacity": st.capacity, "written": last,
-                   "rows": st._store.rows.describe()})
+                   "rows": st.row_file})
         _kill_self()
 
 
@@ -162,7 +162,7 @@ def ring_writer(path, conn, n, **_):
     st = ZarrStorage(path, commit_interval=3600, env=ENV)
     rb = _buffer(st)
     w = int(rb.writer._write_count)
-    conn.send({"opened_at": w, "rows": st._store.rows.describe()})
+    conn.send({"opened_at": w, "rows": st.row_file})
     rb.extend(make_rows(torch.arange(w, w + n)))
     st.close()
     conn.send({"closed": w + n})
@@ -197,7 +197,7 @@ def cgroup_reader(path, conn, cgroup, version, rows_bytes, batch, **_):
     with open(os.path.join(cgroup, "memory.max" if version == "v2" else "memory.limit_in_bytes"), "w") as f:
         f.write(str(limit))
     st = ZarrStorage(path, read_only=True)
-    rows = st._store.rows.describe()
+    rows = st.row_file
     n = len(st)
     digest = hashlib.sha256()
     for a in range(0, n, batch):

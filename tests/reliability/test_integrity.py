@@ -56,7 +56,7 @@ def pristine(tmp_path_factory):
     with ZarrStorage(path, MAX, chunk_rows=CHUNK, env="FetchPush-v4") as s:
         s.set(slice(0, ROWS), _rows(ROWS))
     with ZarrStorage(path, read_only=True) as s:
-        return path, {k: s[k][:ROWS].clone() for k in s._mirror.views.keys(True, True)}
+        return path, {k: s[k][:ROWS].clone() for k in s.view().keys(True, True)}
 
 
 @pytest.fixture

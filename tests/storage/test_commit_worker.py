@@ -53,7 +53,7 @@ def test_commits_go_through_the_worker_and_read_back_bit_exact(tmp_path):
     rb.extend(extra)
     st.close()
     again = ZarrStorage(tmp_path / "m.zarr", read_only=True)
-    assert "new_key" in again._mirror.schema and bool((again.get(torch.arange(500, 510))["new_key"] == 1).all())
+    assert "new_key" in again.schema and bool((again.get(torch.arange(500, 510))["new_key"] == 1).all())
 
 
 def test_the_worker_by_default_and_in_process_commits_on_request(tmp_path, monkeypatch):

@@ -103,7 +103,7 @@ def child_main(path, max_size, chunk_rows, traj_ids, seed, prog, err_file, pause
         st = ZarrStorage(path, max_size, chunk_rows=chunk_rows, commit_interval=0.05, env="FetchPush-v4")
         rb = TensorDictReplayBuffer(storage=st, batch_size=32)
         w = int(rb.writer._write_count)
-        assert w == st._store.write_count and int(rb.writer._cursor) == st._store.cursor, "writer not restored"
+        assert w == st.write_count and int(rb.writer._cursor) == st.state_dict()["zarr"]["cursor"], "writer not restored"
         prog[1], prog[2], prog[3] = w, len(st), int(rb.writer._cursor)
         prog[4] = prog[5] = w
         prog[0] = 1
@@ -170,13 +170,13 @@ class Tracker:
         self.pending_journals += bool(attrs.get("journal"))
         # a reader (no lock, no writes) must see what the writer will restore
         ro = ZarrStorage(self.path, read_only=True)
-        ro_state = (len(ro), ro._store.write_count, ro._store.cursor)
+        ro_state = (len(ro), ro.write_count, ro.state_dict()["zarr"]["cursor"])
         ro_rows = ro[: len(ro)] if len(ro) else None
         ro.close()
         st = ZarrStorage(self.path)  # writable: replays a journal, closes open episodes
         try:
             rb = TensorDictReplayBuffer(storage=st, batch_size=8)
-            n, w_count, cursor = len(st), st._store.write_count, st._store.cursor
+            n, w_count, cursor = len(st), st.write_count, st.state_dict()["zarr"]["cursor"]
             assert int(rb.writer._write_count) == w_count and int(rb.writer._cursor) == cursor
             assert n >= self.last_len, f"len went backwards: {self.last_len} -> {n}"
             assert w_count >= self.last_w, f"write_count went backwards: {self.last_w} -> {w_count}"
@@ -528,7 +528,7 @@ def test_ring_rows_never_lead_the_metadata(tmp_path):
     committed = int(out.stdout.split()[-1])
     assert 128 < committed <= 328, f"the child committed nothing past the first lap: {out.stdout}"
     with ZarrStorage(path) as st:
-        W = st._store.write_count
+        W = st.write_count
         assert committed <= W < 360
         w = -st[: len(st)]["action"][:, 0]
         # every slot holds the last write < write_count that maps to it
@@ -626,8 +626,8 @@ def test_commit_metadata_is_written_atomically(tmp_path, mode):
     assert rows >= 150
     with ZarrStorage(path) as st:
         assert len(st) == rows
-        assert (len(st), st._store.cursor) == (st._store.write_count, st._store.write_count), (
-            f"len {len(st)}, cursor {st._store.cursor}, write_count {st._store.write_count}"
+        assert (len(st), st.state_dict()["zarr"]["cursor"]) == (st.write_count, st.write_count), (
+            f"len {len(st)}, cursor {st.state_dict()['zarr']['cursor']}, write_count {st.write_count}"
         )
 
 
