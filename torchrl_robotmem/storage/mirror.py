@@ -134,13 +134,13 @@ class RamMirror:
             self.packed = self.layout.allocate(shape, self.device)
         else:
             layout = self.file_layout()
-            same = old is not None and self.mapped_layout is not None and \
+            same = old is not None and self.mapped_layout is not None and not self.rows.in_memory and \
                 {**self.mapped_layout, "shape": None} == {**layout, "shape": None} and \
                 self.mapped_layout["shape"][1:] == layout["shape"][1:]
             self.packed = self.rows.map(shape, self.layout.row_bytes, new_file=old is not None and not same)
             self.mapped_layout = layout
-            if same:
-                old = None  # the rows are in the file already
+            if same and not self.rows.in_memory:
+                old = None  # the rows are in the file already (unless there was no room for it: copied then)
         self.views = self.layout.views(self.packed)
         self.columns = dict(self.views.items(include_nested=True, leaves_only=True))
         if old is not None:

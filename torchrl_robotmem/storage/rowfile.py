@@ -63,6 +63,7 @@ SEAL_FILE = "seal.json"
 SEAL_VERSION = 1
 #: the directory a reader's private row file goes to (default: the system's temporary directory)
 CACHE_ENV = "TORCHRL_ROBOTMEM_CACHE"
+_NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _SERIAL = itertools.count(1)  # names a writer's own files apart within the process
 
 
@@ -162,6 +163,7 @@ class RowFile:
         self.maps: list[mmap.mmap] = []  # the newest mappings (a growth maps again; older views keep theirs)
         self.retired: int | None = None  # the file a new layout moved from (closed at release)
         self.made_folder = False  # this handle made ``_rows/`` (an open that fails removes it again)
+        self.in_memory = False  # no room for the file: the rows live in private pages (a growth copies them)
 
     # -- choosing the file ---------------------------------------------------------------------
 
@@ -311,7 +313,7 @@ class RowFile:
         ``open_ends`` are the rows that end an episode left open (the next writer marks them done without
         scanning the rows). Does nothing for a reader or a private file.
         """
-        if self.read_only or self.folder is None or self.name is None or self.fd is None:
+        if self.read_only or self.folder is None or self.name is None or self.fd is None or self.in_memory:
             return
         for m in self.maps[-1:]:
             m.flush()
@@ -350,11 +352,33 @@ class RowFile:
             if size < nbytes:
                 raise RuntimeError(f"the sealed row file {self.name!r} holds {size} bytes, not {nbytes}")
             access = mmap.ACCESS_COPY  # a reader's writes (none are made) would stay in its own pages
+        elif self.in_memory:
+            access = None
         else:
-            if size < nbytes:
-                os.ftruncate(self.fd, nbytes)  # sparse: the disk is taken as rows arrive
-            access = mmap.ACCESS_WRITE
-        m = mmap.mmap(self.fd, max(nbytes, 1), access=access)
+            try:
+                if size < nbytes:
+                    os.ftruncate(self.fd, nbytes)
+                # the blocks taken now: a write into the mapping never meets a full disk (which is SIGBUS)
+                os.posix_fallocate(self.fd, 0, max(nbytes, 1))
+                access = mmap.ACCESS_WRITE
+            except OSError as err:
+                if err.errno not in _NO_ROOM:
+                    raise
+                self.in_memory = True
+                access = None
+        if access is None:
+            # no room on the disk for the file: anonymous memory, as the rows were before the row tier (a
+            # private mapping of the file is no way out: a hole of a full tmpfs faults as SIGBUS); the rows
+            # the file holds are read over, with read(), which meets no hole
+            m = mmap.mmap(-1, max(nbytes, 1))
+            view, done = memoryview(m), 0
+            while done < min(size, nbytes):
+                got = os.preadv(self.fd, [view[done:min(size, nbytes)]], done)
+                if got <= 0:
+                    break
+                done += got
+        else:
+            m = mmap.mmap(self.fd, max(nbytes, 1), access=access)
         self.maps = [*self.maps[-1:], m]  # older mappings stay alive through the views that use them
         return torch.frombuffer(m, dtype=torch.uint8, count=nbytes).view(*shape, int(row_bytes))
 

@@ -63,10 +63,8 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
     if capacity is not None:  # before anything is listed or allocated
         raise ValueError(f"The store at {path!r} cannot be opened on this machine: {capacity.what}. "
                          f"Nothing was read or changed; `robotmem verify {path}` checks it chunk by chunk.")
-    if not problems and served is not None and served(attrs):
-        if read_only and not decode and on_damage == "raise":
-            return attrs  # a reader reads no array: its rows come from the sealed file
-        list_chunks = False
+    if not problems and served is not None and served(attrs) and read_only and not decode and on_damage == "raise":
+        return attrs  # a reader reads no array: its rows come from the sealed file (a writer still lists the chunks)
     if not problems:
         problems += _array_problems(group, attrs, store=store, local_dir=local_dir, list_chunks=list_chunks,
                                     decode=decode or on_damage == "warn", decode_journal=decode)
