@@ -29,6 +29,9 @@ from experiments.prior_variants.hindsight import (  # noqa: E402
     numbered_episodes,
 )
 
+# the prior-memory variants are experiments (experiments/prior_variants): their tests run in the full tier
+pytestmark = pytest.mark.full
+
 SEED = int(os.environ.get("ROBOTMEM_TEST_SEED", "0"))
 
 

@@ -13,6 +13,9 @@ import pytest
 import torch
 from training.test_her_recipe import TINY
 
+# the prior-memory variants are experiments (experiments/prior_variants): their tests run in the full tier
+pytestmark = pytest.mark.full
+
 ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))

@@ -111,6 +111,7 @@ def test_td3_delay_moves_actor_and_targets_every_other_step(reach_rows):
     assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith("target_"))
 
 
+@pytest.mark.full  # a second path of the update the eager tests cover (torch.compile: ~45 s of CPU)
 def test_compiled_update_matches_eager(reach_rows):
     """torch.compile'd steps (aot_eager: dynamo's capture, AOTAutograd) give the eager losses and parameters."""
     env, rows = reach_rows
