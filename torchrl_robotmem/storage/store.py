@@ -21,11 +21,12 @@ from .commit import CommitEngine
 from .context import missing_context, user_stacklevel
 from .format import UNBOUNDED, dims, grown_size, writing_handles
 from .handle import StoreHandle
+from .layout import PackedLayout
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
 from .registry import TagRegistry
 from .rowfile import RowFile, rows_layout
-from .schema import PackedLayout, with_constants
+from .schema import with_constants
 from .store_schema import StoreSchema
 from .summary import summarize
 from .tags import TAG_KEYS

@@ -33,8 +33,9 @@ from tensordict import TensorDictBase
 from . import _backend
 from .context import user_stacklevel
 from .format import write_zero_chunks
+from .layout import PackedLayout
 from .planner import StoreView, WritePlan
-from .schema import DataKind, PackedLayout, create_arrays, default_chunk_rows, spec_of, with_constants
+from .schema import DataKind, create_arrays, default_chunk_rows, spec_of, with_constants
 from .tags import TAG_KEYS
 
 __all__ = ["StoreSchema"]
