@@ -79,6 +79,11 @@ class StoreView(NamedTuple):
     env_names: list
     env_code: int
 
+    @classmethod
+    def of(cls, path: Any, ndim: int, initialized: bool, schema, tags) -> StoreView:
+        """The view of an open store, from its ``StoreSchema`` (mirror, kind, constants) and ``TagRegistry``."""
+        return cls(path, ndim, initialized, schema.mirror, schema.kind, schema.constants, tags.env_names, tags.env_code)
+
 
 @dataclass
 class WritePlan:

@@ -26,8 +26,7 @@ from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
 from .registry import TagRegistry
 from .rowfile import RowFile, rows_layout
-from .schema import with_constants
-from .store_schema import StoreSchema
+from .schema import StoreSchema, with_constants
 from .summary import summarize
 from .tags import TAG_KEYS
 
