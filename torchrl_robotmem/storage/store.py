@@ -24,11 +24,10 @@ from .handle import StoreHandle
 from .layout import PackedLayout
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
-from .registry import TagRegistry
 from .rowfile import RowFile, rows_layout
 from .schema import StoreSchema, with_constants
 from .summary import summarize
-from .tags import TAG_KEYS
+from .tags import TAG_KEYS, TagRegistry
 
 __all__ = ["GOAL_CONDITIONED", "MemoryStore"]
 
