@@ -309,15 +309,6 @@ def check_against(schema: dict[str, dict], data: TensorDictBase, batch_dims: int
     return new, missing
 
 
-def env_names_of(value: Any, n: int) -> list[str] | None:
-    """Env names carried by a non-tensor ``"env"`` entry, else ``None``."""
-    if isinstance(value, NonTensorStack):
-        return [str(x) for x in value.tolist()]
-    if isinstance(value, NonTensorData):
-        return [str(value.data)] * n
-    return None
-
-
 # -- the store's arrays ------------------------------------------------------------------
 
 

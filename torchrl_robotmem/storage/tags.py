@@ -23,8 +23,11 @@ Example:
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
+from tensordict import NonTensorData, NonTensorStack
 
 __all__ = [
     "RESERVED_PARTS", "TAG_KEYS", "UNKNOWN_ENV", "EpisodeTagger", "TagRegistry", "check_user_keys", "check_user_tag",
@@ -121,6 +124,18 @@ def check_user_tag(key: str, value, stored: torch.Tensor | None) -> None:
         f"td.rename_key_({key!r}, 'user_{key}'), or drop it with td.exclude({key!r}); the stored tags read "
         f"back as storage[{key!r}]."
     )
+
+
+# -- tags ----------------------------------------------------------------------------
+
+
+def env_names_of(value: Any, n: int) -> list[str] | None:
+    """Env names carried by a non-tensor ``"env"`` entry, else ``None``."""
+    if isinstance(value, NonTensorStack):
+        return [str(x) for x in value.tolist()]
+    if isinstance(value, NonTensorData):
+        return [str(value.data)] * n
+    return None
 
 
 class EpisodeTagger:
