@@ -20,6 +20,7 @@ from tensordict import LazyStackedTensorDict, TensorDict
 from torchrl_robotmem.storage._backend import links_below, remove_partial_files
 from torchrl_robotmem.storage.contained import ContainedStore, FolderCheck
 from torchrl_robotmem.storage.format import dims, grown_size
+from torchrl_robotmem.storage.layout import PackedLayout
 from torchrl_robotmem.storage.mirror import RamMirror
 from torchrl_robotmem.storage.planner import cursor_rows, write_span
 from torchrl_robotmem.storage.rowfile import (
@@ -32,7 +33,6 @@ from torchrl_robotmem.storage.rowfile import (
     remove_rows,
     rows_layout,
 )
-from torchrl_robotmem.storage.schema import PackedLayout
 
 RECORD = {"len": 3, "cursor": 3, "write_count": 3}
 LAYOUT = {"row_bytes": 8, "fields": [["x", 0, 8, "float32", [2]]], "shape": [4]}

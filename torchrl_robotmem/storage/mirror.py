@@ -1,7 +1,7 @@
 """The packed RAM mirror of a store's rows: layout, allocation, growth, loading, chunk snapshots.
 
 Every stored column of a row lives in one packed ``uint8`` buffer
-(:class:`~torchrl_robotmem.storage.schema.PackedLayout`): a sampled batch is one
+(:class:`~torchrl_robotmem.storage.layout.PackedLayout`): a sampled batch is one
 gather of whole rows, and a chunk the commit engine writes is one ``memcpy``
 (:meth:`RamMirror.copy_chunk`, taken under the engine's lock) split per array
 later (:meth:`RamMirror.chunk_arrays`, outside it). The mirror also reads a
@@ -37,8 +37,8 @@ from . import _backend
 from .fast_read import read_into
 from .format import read_rows
 from .journal import PREFIX, journal_chunks
+from .layout import PackedLayout
 from .rowfile import RowFile, rows_layout
-from .schema import PackedLayout
 from .tags import TAG_KEYS, open_episode_ends
 
 __all__ = ["RamMirror", "DONE_KEY", "TRUNCATED_KEY"]

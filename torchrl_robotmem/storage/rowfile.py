@@ -1,6 +1,6 @@
 """The packed rows of a store in a memory-mapped file, and the seal that says when that file may be served.
 
-A local store keeps its packed rows (:class:`~.schema.PackedLayout`) in ``_rows/rows.bin``, mapped into
+A local store keeps its packed rows (:class:`~.layout.PackedLayout`) in ``_rows/rows.bin``, mapped into
 the process (``mmap``): the OS page cache is the RAM tier, so resident memory follows the rows a process
 touches, never the memory's size, and pages the process no longer touches can be reclaimed. The file is a
 cache of the committed Zarr chunks, never the durable copy.
@@ -79,10 +79,10 @@ def record_digest(attrs: dict) -> str:
 
 
 def rows_layout(layout: Any, shape: tuple[int, ...]) -> dict:
-    """What a seal binds the rows to: a :class:`~.schema.PackedLayout`'s row bytes and fields, and the rows' shape.
+    """What a seal binds the rows to: a :class:`~.layout.PackedLayout`'s row bytes and fields, and the rows' shape.
 
     Example:
-        >>> from torchrl_robotmem.storage.schema import PackedLayout
+        >>> from torchrl_robotmem.storage.layout import PackedLayout
         >>> rows_layout(PackedLayout({"x": {"dtype": "float32", "shape": [2]}}), (10,))
         {'row_bytes': 8, 'fields': [['x', 0, 8, 'float32', [2]]], 'shape': [10]}
     """

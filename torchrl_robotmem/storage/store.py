@@ -20,14 +20,13 @@ from .commit import CommitEngine
 from .context import missing_context, user_stacklevel
 from .format import UNBOUNDED, dims, grown_size
 from .handle import StoreHandle
+from .layout import PackedLayout
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
-from .registry import TagRegistry
 from .rowfile import RowFile, rows_layout
-from .schema import PackedLayout, with_constants
-from .store_schema import StoreSchema
+from .schema import StoreSchema, with_constants
 from .summary import summarize
-from .tags import TAG_KEYS
+from .tags import TAG_KEYS, TagRegistry
 
 __all__ = ["GOAL_CONDITIONED", "MemoryStore"]
 
