@@ -55,16 +55,39 @@ from typing import Any
 
 import torch
 
-__all__ = ["CACHE_ENV", "ROWS_DIR", "ROWS_FILE", "SEAL_FILE", "RowFile", "record_digest", "remove_rows", "rows_layout"]
+__all__ = ["CACHE_ENV", "ROWS_DIR", "ROWS_FILE", "SEAL_FILE", "RowFile", "record_digest", "remove_rows", "rows_layout",
+           "url_cache_dir"]
 
 ROWS_DIR = "_rows"
 ROWS_FILE = "rows.bin"
 SEAL_FILE = "seal.json"
 SEAL_VERSION = 1
-#: the directory a reader's private row file goes to (default: the system's temporary directory)
+#: the directory a reader's private row file goes to (default: the system's temporary directory), and the
+#: root of the row files of URL stores (default: ``$XDG_CACHE_HOME/torchrl_robotmem``, ``~/.cache/...``)
 CACHE_ENV = "TORCHRL_ROBOTMEM_CACHE"
 _NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _SERIAL = itertools.count(1)  # names a writer's own files apart within the process
+
+
+def url_cache_dir(url: str, storage_options: dict | None = None) -> str:
+    """The local folder that holds the row file of the store at ``url`` (an ``s3://`` store, say).
+
+    One folder per store URL and set of fsspec options (another endpoint is another store), named by
+    their sha256: ``$TORCHRL_ROBOTMEM_CACHE/stores/<digest>`` (default root ``$XDG_CACHE_HOME/torchrl_robotmem``,
+    else ``~/.cache/torchrl_robotmem``). It holds ``_rows/`` as a local store does, sealed by the writer's
+    clean close for the record it committed; the record names the writing session, so a store replaced
+    at the same URL never matches a seal of the one before. Deleting the folder loses nothing.
+
+    Example:
+        >>> url_cache_dir("s3://bucket/run.zarr") == url_cache_dir("s3://bucket/run.zarr", {})
+        True
+        >>> url_cache_dir("s3://bucket/run.zarr") != url_cache_dir("s3://bucket/run.zarr", {"endpoint_url": "x"})
+        True
+    """
+    root = os.environ.get(CACHE_ENV) or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchrl_robotmem")
+    key = json.dumps([url, storage_options or {}], sort_keys=True, default=str)
+    return os.path.join(root, "stores", hashlib.sha256(key.encode()).hexdigest()[:32])
 
 
 def record_digest(attrs: dict) -> str:
