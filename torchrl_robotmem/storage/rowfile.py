@@ -13,7 +13,7 @@ clean close, after its last commit and an ``fsync`` of the file; it binds
 - the file itself (device, inode, size and modification time: a file replaced, grown or written since the
   seal does not match).
 
-A writer removes the seal (durably) before its first write into the file, so a crash leaves no seal and the
+A writer removes the seal before its first write into the file, so a killed writer leaves no seal and the
 next open fills the file from the chunks. Anything that does not match is filled again, never served.
 
 Locks keep a reader's rows the committed ones: a reader that maps ``rows.bin`` holds ``flock(LOCK_SH)`` on
@@ -328,11 +328,10 @@ class RowFile:
         return seal
 
     def _unseal(self) -> None:
-        try:
+        # no fsync: a killed process's unlink is seen by the next open (the page cache outlives it), and the
+        # commits themselves are not synced either (a power loss is what `fsync` after flush() guards against)
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(self._seal_path())
-        except FileNotFoundError:
-            return
-        _fsync_dir(self.folder)
 
     def seal(self, attrs: dict, *, layout: dict, open_ends: list[int] = ()) -> None:
         """A writer's clean close: makes the file durable, names it ``rows.bin`` and seals it for ``attrs``.
