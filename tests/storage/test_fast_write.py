@@ -164,3 +164,16 @@ def test_every_write_ends_before_the_first_error_is_raised(tmp_path):
     for p in ("a", "c"):
         assert sorted(os.listdir(tmp_path / "s.zarr" / p / "c")) == ["0", "1"]
     assert not [f for f in _all_files(tmp_path) if f.endswith(".partial")]
+
+
+def test_the_commit_worker_loads_it_without_torch():
+    """The worker (a script) loads fast_write by path: no package import, no torch (its start time)."""
+    import subprocess
+
+    from torchrl_robotmem.storage import _commit_worker
+
+    code = (f"import runpy, sys; w = runpy.run_path({_commit_worker.__file__!r}); fw = w['_sibling']('fast_write'); "
+            f"print(fw.write_chunks.__module__, 'torch' in sys.modules, 'torchrl_robotmem' in sys.modules)")
+    out = subprocess.run([sys.executable, "-s", "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["_robotmem_storage.fast_write", "False", "False"], out.stdout

@@ -7,7 +7,9 @@ a child process the foreground only pays for one ``memcpy`` of the chunk and a
 pipe write (which releases the GIL).
 
 This file runs as a script (``python _commit_worker.py``) and imports nothing
-from the package: only the standard library, numpy and zarr, so it starts in a
+from the package: only the standard library, numpy and zarr, and its sibling
+:mod:`.fast_write` (the chunk writer of both commit paths) loaded by path
+(:func:`_sibling`), never the package (which imports torch), so it starts in a
 fraction of a second. The parent side is :class:`CommitWorker`, used by
 :class:`~torchrl_robotmem.storage.commit.CommitEngine`.
 
@@ -44,6 +46,7 @@ identified and taken over (see ``WriterLock``).
 """
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import select
@@ -54,6 +57,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 from typing import Any
 
 _HEADER = struct.Struct("<Q")
@@ -137,6 +141,7 @@ class _Store:
 
         self.group = zarr.open_group(LocalStore(path), mode="r+", zarr_format=3)
         self.arrays: dict[str, Any] = {}
+        self.plans: dict[str, Any] = {}  # how each array's chunks are written (fast_write.write_chunks' cache)
         # the parent's flock, shared: the store stays locked for as long as this
         # worker could still write to it, even if the parent dies first
         self.lock_fd = lock_fd
@@ -172,21 +177,24 @@ def _split(payload: bytearray, header: dict) -> dict[int, dict[str, Any]]:
     return out
 
 
+_SIBLINGS = "_robotmem_storage"  # the package name this folder's modules are loaded under, without the package
+
+
+def _sibling(name: str) -> Any:
+    """Module ``name`` of this folder, loaded by path under a bare package (no ``__init__``: no torch).
+
+    Its relative imports resolve to this folder's modules, loaded the same way.
+    """
+    if _SIBLINGS not in sys.modules:
+        pkg = types.ModuleType(_SIBLINGS)
+        pkg.__path__ = [os.path.dirname(os.path.abspath(__file__))]
+        sys.modules[_SIBLINGS] = pkg
+    return importlib.import_module(f"{_SIBLINGS}.{name}")
+
+
 def _write_chunks(store: _Store, payload: dict, chunk_rows: int, prefix: str = "") -> None:
-    import asyncio
-
-    from zarr.core.sync import sync
-
-    writes = []
-    for c, arrays in payload.items():
-        lo = c * chunk_rows
-        for path, values in arrays.items():
-            writes.append(store.array(prefix + path)._async_array.setitem(slice(lo, lo + len(values)), values))
-
-    async def _all():
-        await asyncio.gather(*writes)
-
-    sync(_all())
+    """The commit engine's chunk writer (``fast_write.write_chunks``), on this store's arrays."""
+    _sibling("fast_write").write_chunks(store.array, payload, chunk_rows, prefix, plans=store.plans)
 
 
 def _commit(store: _Store, header: dict, payload: bytearray) -> None:
@@ -231,6 +239,7 @@ def _serve(fd: int, ppid: int) -> None:
     # every chunk is written, all-zero ones too: a chunk file missing below the
     # committed length is damage (see integrity.py), never "all fill value"
     zarr.config.set({"array.write_empty_chunks": True})
+    _sibling("fast_write")  # imported before the worker says it is ready
     sock = socket.socket(fileno=fd)
     sys.stdout = sys.stderr
     stores: dict[str, _Store] = {}
@@ -255,6 +264,7 @@ def _serve(fd: int, ppid: int) -> None:
             elif op == "reset":
                 if path in stores:
                     stores[path].arrays.clear()
+                    stores[path].plans.clear()
             else:
                 store = stores.get(path)
                 if store is None:
