@@ -46,8 +46,8 @@ from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_robotmem import ZarrStorage
 from torchrl_robotmem.storage.errors import LinkError
+from torchrl_robotmem.storage.layout import PackedLayout
 from torchrl_robotmem.storage.rowfile import rows_layout
-from torchrl_robotmem.storage.schema import PackedLayout
 
 from . import _gen
 from ._gen import make_rows, torn_or_wrong

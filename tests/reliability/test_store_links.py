@@ -219,3 +219,34 @@ def test_hard_links_share_no_write(folder):
     assert _hash_tree(copy) == before
     with ZarrStorage(str(copy), read_only=True) as s:
         assert torch.equal(s[:]["observation"], _rows(ROWS, 0.0)["observation"])
+
+
+# -- a writer whose open walked no chunk folder ---------------------------------------------------
+
+
+@pytest.mark.parametrize("commit_process", [False, True], ids=["in-process", "commit-worker"])
+def test_a_link_where_a_sealed_writer_writes_next_refuses_the_write_not_the_open(tmp_path, commit_process):
+    """A sealed writer's open reads no chunk, so it does not walk the chunk folders for links; its writes
+    look at each folder they go into (storage/contained.py) and refuse one that is a link, naming it.
+    Nothing is written outside the store; the rows stay in memory and the store holds what it held."""
+    path, outside = tmp_path / "a.zarr", tmp_path / "elsewhere"
+    outside.mkdir()
+    with ZarrStorage(str(path), MAX, chunk_rows=CHUNK) as s:
+        s.set(slice(0, ROWS), _rows(ROWS, 0.0))
+    os.symlink(outside, path / "observation" / "c" / str(ROWS // CHUNK))  # the folder of the next chunk
+    before = _hash_tree(path)
+    s = ZarrStorage(str(path), MAX, commit_process=commit_process)
+    assert s.row_file["sealed"] is True  # the open served the rows from the sealed file: no chunk walked
+    s.set(slice(ROWS, ROWS + 4), _rows(4, 100.0))
+    with pytest.raises(RuntimeError, match=r"observation/c/3' is a symbolic link inside the store"):
+        s.flush()
+    assert len(s) == ROWS + 4 and s[ROWS]["observation"].tolist() == [100.0] * 3  # kept in memory
+    assert os.listdir(outside) == []  # nothing written through the link
+    with pytest.raises(RuntimeError):
+        s.close()  # the rows it cannot write are named again
+    os.remove(path / "observation" / "c" / str(ROWS // CHUNK))
+    after = _hash_tree(path)  # every file the store held is as it was (chunks past the length may be new)
+    assert {k: after.get(k) for k in before if not k.startswith(("_rows", "observation/c/3"))} == \
+        {k: v for k, v in before.items() if not k.startswith(("_rows", "observation/c/3"))}
+    with ZarrStorage(str(path), read_only=True) as r:  # the committed rows, as before the refused write
+        assert len(r) == ROWS and torch.equal(r[:]["observation"], _rows(ROWS, 0.0)["observation"])

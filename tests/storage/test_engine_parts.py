@@ -4,7 +4,8 @@
 - ``format``: how an unbounded memory grows (``grown_size``) and the record's dimensions (``dims``);
 - ``planner``: the rows a cursor touches (``cursor_rows``) and the write span (``write_span``);
 - ``mirror``: the packed RAM mirror (``RamMirror``): views, writes, growth, chunk snapshots, episode ends;
-- ``_backend.links_below``: which symbolic links below a store each mode reports.
+- ``_backend.links_below``: which symbolic links below a store each mode reports; ``remove_partial_files``:
+  where a killed writer's partial files are removed; ``contained``: writes that refuse a linked folder.
 
 Real files under ``tmp_path``; deterministic; no timing.
 """
@@ -16,8 +17,10 @@ import pytest
 import torch
 from tensordict import LazyStackedTensorDict, TensorDict
 
-from torchrl_robotmem.storage._backend import links_below
+from torchrl_robotmem.storage._backend import links_below, remove_partial_files
+from torchrl_robotmem.storage.contained import ContainedStore, FolderCheck
 from torchrl_robotmem.storage.format import dims, grown_size
+from torchrl_robotmem.storage.layout import PackedLayout
 from torchrl_robotmem.storage.mirror import RamMirror
 from torchrl_robotmem.storage.planner import cursor_rows, write_span
 from torchrl_robotmem.storage.rowfile import (
@@ -30,7 +33,6 @@ from torchrl_robotmem.storage.rowfile import (
     remove_rows,
     rows_layout,
 )
-from torchrl_robotmem.storage.schema import PackedLayout
 
 RECORD = {"len": 3, "cursor": 3, "write_count": 3}
 LAYOUT = {"row_bytes": 8, "fields": [["x", 0, 8, "float32", [2]]], "shape": [4]}
@@ -440,3 +442,66 @@ def test_links_below_does_not_follow_a_linked_folder_and_ignores_hard_links(tmp_
     os.link(store / "obs" / "zarr.json", store / "hard.json")
     assert links_below(store) == [("obs/c/0", str(outside))]
     assert links_below(tmp_path / "missing") == []
+
+
+# -- _backend.remove_partial_files, contained ------------------------------------------------------
+
+
+def test_remove_partial_files_where_a_killed_writer_was_writing(tmp_path):
+    """Metadata and ``_`` folders, chunks past the committed length and journalled chunks lose their partial
+    files; an old chunk's folder is not listed (one listing per chunk at every open), so its partial stays."""
+    attrs = {"schema": {"obs": {"dtype": "float32", "shape": [3]}, "next/done": {"dtype": "bool", "shape": [1]}},
+             "max_size": 100, "chunk_rows": 10, "len": 35, "ndim": 1, "inner_shape": [],
+             "journal": {"chunks": [1], "meta": {}}}
+    removed = ["zarr.1.partial", "obs/zarr.2.partial", "obs/c/3/0.3.partial", "obs/c/5/0.4.partial",
+               "obs/c/1/0.5.partial", "next/done/c/3/0.6.partial", "_journal/obs/c/1/0.7.partial",
+               "_priority/c/0.8.partial"]
+    kept = ["obs/c/0/0.9.partial", "obs/c/2/0.10.partial", "obs/c/0/0", "obs/c/3/0"]
+    for rel in removed + kept:
+        os.makedirs(os.path.dirname(tmp_path / rel), exist_ok=True)
+        (tmp_path / rel).write_bytes(b"x")
+    assert remove_partial_files(tmp_path, attrs) == len(removed)
+    left = [os.path.relpath(os.path.join(d, f), tmp_path) for d, _, fs in os.walk(tmp_path) for f in fs]
+    assert sorted(left) == sorted(kept)
+
+
+def test_contained_store_refuses_a_write_or_delete_through_a_linked_folder(tmp_path):
+    import zarr
+    from zarr.core.buffer import default_buffer_prototype
+
+    root, outside = tmp_path / "store", tmp_path / "outside"
+    (root / "obs" / "c").mkdir(parents=True)
+    outside.mkdir()
+    (outside / "0").write_bytes(b"theirs")
+    os.symlink(outside, root / "obs" / "c" / "1")
+    store = ContainedStore(str(root))
+    value = default_buffer_prototype().buffer.from_bytes(b"ours")
+    zarr.core.sync.sync(store.set("obs/c/0", value))  # a real folder: written
+    assert (root / "obs" / "c" / "0").read_bytes() == b"ours"
+    for act in (lambda: store.set("obs/c/1/0", value), lambda: store.delete("obs/c/1/0"),
+                lambda: store.delete_dir("obs/c/1")):
+        with pytest.raises(OSError, match="'obs/c/1' is a symbolic link inside the store"):
+            zarr.core.sync.sync(act())
+    assert sorted(os.listdir(outside)) == ["0"] and (outside / "0").read_bytes() == b"theirs"
+    check = FolderCheck(root)
+    check("new/c/0")  # folders that do not exist yet are made by the write, as folders
+    (root / "file").write_bytes(b"")
+    with pytest.raises(NotADirectoryError, match="'file' is a file"):
+        check("file/zarr.json")
+
+
+def test_a_writers_open_removes_partials_where_it_writes_and_repair_removes_the_rest(tmp_path):
+    from torchrl_robotmem import ZarrStorage
+    from torchrl_robotmem.storage.integrity import repair
+
+    path = tmp_path / "m.zarr"
+    with ZarrStorage(str(path), 64, chunk_rows=8) as st:
+        st.set(slice(0, 20), TensorDict({"obs": torch.ones(20, 3)}, [20]))
+    old, tail = path / "obs" / "c" / "0" / "0.old.partial", path / "obs" / "c" / "2" / "0.tail.partial"
+    for f in (old, tail):
+        f.write_bytes(b"left by a killed writer")
+    with ZarrStorage(str(path)) as st:  # chunk 2 holds rows past the committed 20 (rows 16..23)
+        assert len(st) == 20
+    assert old.exists() and not tail.exists()
+    report = repair(str(path))
+    assert report.actions == ["removed 1 partial file(s) of writes a killed writer left"] and not old.exists()

@@ -18,7 +18,7 @@ from torchrl_robotmem import WindowSampler, ZarrStorage
 from torchrl_robotmem.storage.checkpointer import ZarrCheckpointer
 from torchrl_robotmem.storage.integrity import IntegrityError, repair, verify
 from torchrl_robotmem.storage.integrity.rows import row_file_problems
-from torchrl_robotmem.storage.rowfile import ROWS_DIR, SEAL_FILE
+from torchrl_robotmem.storage.rowfile import ROWS_DIR, SEAL_FILE, remove_rows
 
 CHUNK = 64
 
@@ -51,9 +51,13 @@ def test_a_clean_close_seals_the_rows_and_an_open_serves_them_without_a_chunk(tm
         assert st.row_file == {"file": os.path.join(os.path.realpath(path), ROWS_DIR, "rows.bin"),
                                "sealed": True, "shared": True}
         assert torch.equal(st["obs"], _rows(0, 4 * CHUNK)["obs"])
+    with ZarrStorage(path) as st:  # a writer neither: it checks the arrays' metadata, lists no chunk
+        assert st.row_file["sealed"] is True and torch.equal(st["obs"], _rows(0, 4 * CHUNK)["obs"])
     assert not verify(path).ok  # the damage is verify's to find: it reads every chunk
-    with pytest.raises(IntegrityError, match="chunk file missing"):
-        ZarrStorage(path)  # a writer lists the chunks it will write beside (its walk for links sees them anyway)
+    remove_rows(path)  # without the row file the chunks are read, and the damage refuses every open
+    for read_only in (True, False):
+        with pytest.raises(IntegrityError, match="chunk file missing"):
+            ZarrStorage(path, read_only=read_only)
 
 
 def test_without_a_seal_the_open_fills_the_rows_from_the_chunks(tmp_path):

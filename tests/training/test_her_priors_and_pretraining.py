@@ -178,6 +178,7 @@ def test_pretraining_checks_look_at_held_out_goals_never_at_the_evaluation_goals
     env.close()
 
 
+@pytest.mark.full  # a second test of what the default tier covers (make test stays under 15 minutes)
 def test_pretraining_stops_once_the_memory_meets_the_target_and_the_run_reports_its_cpu(tmp_path):
     """A second run whose target the memory already meets: a few pretraining updates, no new frame, CPU-s reported."""
     mem = tmp_path / "mem.zarr"

@@ -84,6 +84,7 @@ def test_shadow_hand_runs(tmp_path):
     assert s["env"] == "HandReach-v3" and s["memory_rows_after"] == 50
 
 
+@pytest.mark.full  # a second test of what the default tier covers (make test stays under 15 minutes)
 def test_resume_appends_to_the_memory(tmp_path):
     from torchrl_robotmem import ZarrStorage
 
@@ -398,6 +399,7 @@ def test_an_agent_checkpoint_a_kill_caught_mid_save_is_put_back(tmp_path):
     assert recover_checkpoint(str(agent)) is None  # a checkpoint in place is left alone
 
 
+@pytest.mark.full  # a second test of what the default tier covers (make test stays under 15 minutes)
 def test_the_same_seed_gives_the_same_run(tmp_path):
     """Two runs of one command (a prior memory, pretraining, HER, evaluation) end bit-identical: every
     tensor of the agent checkpoint, every logged loss, every evaluation episode."""

@@ -163,6 +163,7 @@ def run_ppo(tmp_path: Path, *overrides: str, out: str = "out") -> dict:
     return summary
 
 
+@pytest.mark.full  # a second test of what the default tier covers (make test stays under 15 minutes)
 def test_ppo_writes_a_memory_and_resumes_on_it(tmp_path):
     mem = tmp_path / "mem.zarr"
     first = run_ppo(tmp_path, f"memory.path={mem}", "collector.total_frames=200", out="run1")

@@ -9,10 +9,12 @@ One job a module, as TorchRL splits storages, writers and checkpointers
 * :mod:`.loader`: the steps of an open and a reader's refresh (record, growth, journal, rows into the mirror);
 * :mod:`.planner`: a write validated and normalised into a plan, without side effects;
 * :mod:`.mirror`: the packed RAM mirror (allocation, loading, episode ends, the chunk snapshots commits write);
-* :mod:`.store_schema`: a store's data kind, constants and the arrays created for its columns;
-* :mod:`.schema`: column specs, data kinds, the packed layout, the arrays of a schema;
+* :mod:`.schema`: a store's schema: column specs and checks, data kinds, constants, the arrays created for its
+  columns (:class:`~.schema.StoreSchema`);
+* :mod:`.layout`: the packed row (where each column sits in one byte buffer) and its views;
 * :mod:`.state` and :mod:`.summary`: a ``state_dict`` as rows to write; a store's statistics;
-* :mod:`.tags` and :mod:`.registry`: episode / run / env tags (pure functions) and the env table and counters;
+* :mod:`.tags`: episode / run / env tags: the functions and the registry a store draws them from
+  (:class:`~.tags.TagRegistry`: the env table and counters);
 * :mod:`.commit`: the commit engine (dirty chunks, background thread, ``flush``), writing through
   :mod:`.journal` (the redo journal) and :mod:`._commit_worker` (the commit worker process);
 * :mod:`.format`, :mod:`._backend`, :mod:`.errors`: the on-disk format, store plumbing, error types;

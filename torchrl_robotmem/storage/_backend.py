@@ -21,6 +21,7 @@ import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec, ZstdCodec
 from zarr.core.sync import sync
 
+from .contained import ContainedStore
 from .errors import IntegrityError, LinkError, Problem
 from .format import FORMAT_MARKER, FORMAT_VERSION  # noqa: F401 - re-exported: the format lives in .format
 
@@ -156,8 +157,9 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
     """Returns ``(store_or_path, local_dir)``.
 
     ``local_dir`` is the directory of a local store (used for the writer lock),
-    else ``None``. ``chunk_links=False``: the columns' chunk folders are not walked for links here (a
-    reader that reads them walks them first: ``refuse_links(local_dir, path, chunks=None)``).
+    else ``None``. ``chunk_links=False``: the columns' chunk folders are not walked for links here (an
+    open that reads them walks them first: ``refuse_links(local_dir, path, chunks=None)``; a writer's
+    writes go through :class:`.contained.ContainedStore`, which looks at each folder it writes into).
     """
     spath = normalize_path(path)
     if not isinstance(spath, str):
@@ -189,9 +191,11 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
             )
         p.mkdir(parents=True, exist_ok=True)
     refuse_links(p, spath, chunks=chunk_links)
-    from zarr.storage import LocalStore
+    if read_only:
+        from zarr.storage import LocalStore
 
-    return LocalStore(str(p), read_only=read_only), p
+        return LocalStore(str(p), read_only=True), p
+    return ContainedStore(str(p)), p  # no write goes through a link in a folder the open did not walk
 
 
 def open_group(store, *, read_only: bool) -> zarr.Group | None:
@@ -609,21 +613,40 @@ def refuse_links(directory: str | os.PathLike, name: Any, *, chunks: bool | None
         raise LinkError(name, links)
 
 
-def remove_partial_files(directory: Path) -> int:
-    """Deletes the ``*.partial`` temporary files of chunk writes a killed writer left.
+def remove_partial_files(directory: Path, attrs: dict) -> int:
+    """Deletes the ``*.partial`` files of writes a killed writer left, where a writer can have left them.
 
-    Only called by the lock holder: no live writer can be writing them.
+    Zarr writes each file to ``NAME.<uuid>.partial`` beside it and renames it into place. A killed writer's
+    partial files lie in the folders it was writing: the metadata folders (the record, each array's
+    ``zarr.json``), the ``_``-named groups (the journal, the priorities), and the chunk folders of the rows
+    past the committed length or of the chunks a pending journal lists. Those are listed here; the other
+    chunk folders are not (that would be a listing per chunk at every open): a partial file elsewhere is
+    never read as a chunk (only wasted space) and ``robotmem repair`` removes it.
+
+    Only called by the lock holder at its open, before its first write: no partial file of a live write
+    exists then. Returns how many were deleted.
     """
-    removed = 0
-    stack = [os.fspath(directory)]
-    while stack:  # os.scandir: a 1M-row store's ~1,500 directories in a few ms (Path.rglob took 50+ ms)
+    from .format import dims
+
+    root = os.fspath(directory)
+    schema = attrs.get("schema") or {}
+    rows = int(attrs.get("chunk_rows") or 0)
+    first = dims(attrs)[1] // rows if schema and rows else 0
+    journal = {int(c) for c in (attrs.get("journal") or {}).get("chunks", ())}
+    chunk_folders = {os.path.join(root, *path.split("/"), "c") for path in schema}
+    removed, stack = 0, [root]
+    while stack:
+        folder = stack.pop()
         try:
-            entries = list(os.scandir(stack.pop()))
+            entries = list(os.scandir(folder))
         except OSError:
             continue
+        in_chunks = folder in chunk_folders
         for entry in entries:
             if entry.is_dir(follow_symlinks=False):
-                stack.append(entry.path)
+                # in a column's chunk folder, only the folders of chunks past the length or journalled
+                if not in_chunks or (entry.name.isdigit() and (int(entry.name) >= first or int(entry.name) in journal)):
+                    stack.append(entry.path)
             elif entry.name.endswith(".partial"):
                 try:
                     os.unlink(entry.path)

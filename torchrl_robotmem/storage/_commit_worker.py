@@ -137,9 +137,9 @@ class _Store:
 
     def __init__(self, path: str, lock_fd: int | None) -> None:
         import zarr
-        from zarr.storage import LocalStore
+        from contained import ContainedStore  # this folder is the script's sys.path[0]: no package import
 
-        self.group = zarr.open_group(LocalStore(path), mode="r+", zarr_format=3)
+        self.group = zarr.open_group(ContainedStore(path), mode="r+", zarr_format=3)
         self.arrays: dict[str, Any] = {}
         self.plans: dict[str, Any] = {}  # how each array's chunks are written (fast_write.write_chunks' cache)
         # the parent's flock, shared: the store stays locked for as long as this

@@ -82,13 +82,14 @@ class StoreHandle:
 
     def open(self) -> None:
         """Opens the store and its group; a writable local store takes the writer lock first."""
-        # a reader walks the columns' chunk folders for links only if it reads them (MemoryStore.open_rows)
+        # the columns' chunk folders are walked for links only by an open that reads them (MemoryStore.open_rows,
+        # loader.open_record); a writer's writes look at each folder they go into (storage/contained.py), which
+        # also removes the partial files a writer killed mid-chunk left there
         self.store, self.local_dir = _backend.open_store(
-            self.path, read_only=self.read_only, storage_options=self.storage_options, chunk_links=not self.read_only
+            self.path, read_only=self.read_only, storage_options=self.storage_options, chunk_links=False
         )
         if self.local_dir is not None and not self.read_only:
             self.lock = _backend.WriterLock(self.local_dir)
-            _backend.remove_partial_files(self.local_dir)  # left by a writer killed mid-chunk
         elif not self.read_only and isinstance(self.path, str) and _backend.is_url(self.path):
             self.lock = _backend.url_writer_lock(self.path, self.storage_options)
         # a new store gets its group together with its commit record (create): no empty group in between

@@ -71,11 +71,16 @@ def open_record(handle, max_size: int | None, *, chunk_rows: int | None, ndim: i
         handle.create(attrs, max_size, chunk_rows, ndim)
         attrs = handle.group.attrs.asdict()
     handle.check_format(attrs)
+    if not handle.read_only and handle.local_dir is not None:
+        _backend.remove_partial_files(handle.local_dir, attrs)  # left by a writer killed mid-write
     # before anything is read or written: a damaged store raises, naming the array and chunk
     grows = max_size is not None and int(max_size) != attrs.get("max_size")
+    decode = not handle.read_only and (bool(attrs.get("journal")) or grows)
+    if decode and handle.local_dir is not None:  # every chunk below the length is read: walk their folders first
+        _backend.refuse_links(handle.local_dir, handle.path, chunks=None)
     return integrity.check_open(handle.group, attrs, store=handle.store, local_dir=handle.local_dir, path=handle.path,
                                 read_only=handle.read_only, on_damage=on_damage, served=served, mapped=mapped,
-                                decode=not handle.read_only and (bool(attrs.get("journal")) or grows))
+                                decode=decode)
 
 
 def reopen_record(handle, *, on_damage: str, served: Callable[[dict], bool] | None = None,

@@ -1,7 +1,7 @@
 """The packed RAM mirror of a store's rows: layout, allocation, growth, loading, chunk snapshots.
 
 Every stored column of a row lives in one packed ``uint8`` buffer
-(:class:`~torchrl_robotmem.storage.schema.PackedLayout`): a sampled batch is one
+(:class:`~torchrl_robotmem.storage.layout.PackedLayout`): a sampled batch is one
 gather of whole rows, and a chunk the commit engine writes is one ``memcpy``
 (:meth:`RamMirror.copy_chunk`, taken under the engine's lock) split per array
 later (:meth:`RamMirror.chunk_arrays`, outside it). The mirror also reads a
@@ -37,8 +37,8 @@ from . import _backend
 from .fast_read import read_into
 from .format import read_rows
 from .journal import PREFIX, journal_chunks
+from .layout import PackedLayout
 from .rowfile import RowFile, rows_layout
-from .schema import PackedLayout
 from .tags import TAG_KEYS, open_episode_ends
 
 __all__ = ["RamMirror", "DONE_KEY", "TRUNCATED_KEY"]
@@ -130,6 +130,7 @@ class RamMirror:
         """
         old = self.views if keep else None
         shape = (self.max_dim0, *self.inner_shape)
+        self.before_write()
         if self.rows is None:
             self.packed = self.layout.allocate(shape, self.device)
         else:
@@ -170,8 +171,14 @@ class RamMirror:
             out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
         return out
 
+    def before_write(self) -> None:
+        """Claims the row file (unsealing it, once) before the first write into the rows."""
+        if self.rows is not None:
+            self.rows.claim()
+
     def write(self, cursor, data: TensorDictBase) -> None:
         """Writes the prepared rows ``data`` at ``cursor`` (along the first dimension) into the views."""
+        self.before_write()
         if isinstance(data, LazyStackedTensorDict) and data.stack_dim == 0:
             self.views.update_at_(data, cursor)  # each stacked TensorDict written in place
         elif isinstance(cursor, slice) and isinstance(data, TensorDict):
@@ -192,6 +199,7 @@ class RamMirror:
 
         Returns the first-dimension rows written, for the commit engine to mark dirty.
         """
+        self.before_write()
         nested = [k for k in self.views.keys(True, True) if isinstance(k, tuple) and len(k) > 2 and k[0] == "next"
                   and k[-1] in ("done", "truncated")]
         for key in (DONE_KEY, TRUNCATED_KEY, *nested):
@@ -246,6 +254,7 @@ class RamMirror:
         """
         if not n0:
             return set()
+        self.before_write()
         arrays = {path: group[path] for path in self.schema}
         left = read_into(arrays, {path: self.column(path) for path in arrays}, n0, self.chunk_rows, local_dir=local_dir)
         for path in self.schema:
@@ -256,6 +265,7 @@ class RamMirror:
 
     def apply_journal(self, group: Any, journal: dict) -> None:
         """A reader applies a pending journal in RAM only."""
+        self.before_write()
         for path, rows, values in journal_chunks(group, journal):
             self.column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
 

@@ -32,8 +32,8 @@ from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase, is_ten
 from tensordict.base import _is_leaf_nontensor
 
 from . import _backend
-from .schema import DataKind, check_against, env_names_of, split_constants
-from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag
+from .schema import DataKind, check_against, split_constants
+from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag, env_names_of
 
 __all__ = ["MAX_NAME_BYTES", "StoreView", "WritePlan", "check_constants", "check_key_names", "completes_chunk",
            "cursor_rows", "is_int_cursor", "key_name_problem", "last_index", "check_rows", "plan_write", "validate",
@@ -78,6 +78,11 @@ class StoreView(NamedTuple):
     constants: dict
     env_names: list
     env_code: int
+
+    @classmethod
+    def of(cls, path: Any, ndim: int, initialized: bool, schema, tags) -> StoreView:
+        """The view of an open store, from its ``StoreSchema`` (mirror, kind, constants) and ``TagRegistry``."""
+        return cls(path, ndim, initialized, schema.mirror, schema.kind, schema.constants, tags.env_names, tags.env_code)
 
 
 @dataclass

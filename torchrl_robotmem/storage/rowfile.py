@@ -1,6 +1,6 @@
 """The packed rows of a store in a memory-mapped file, and the seal that says when that file may be served.
 
-A local store keeps its packed rows (:class:`~.schema.PackedLayout`) in ``_rows/rows.bin``, mapped into
+A local store keeps its packed rows (:class:`~.layout.PackedLayout`) in ``_rows/rows.bin``, mapped into
 the process (``mmap``): the OS page cache is the RAM tier, so resident memory follows the rows a process
 touches, never the memory's size, and pages the process no longer touches can be reclaimed. The file is a
 cache of the committed Zarr chunks, never the durable copy.
@@ -79,10 +79,10 @@ def record_digest(attrs: dict) -> str:
 
 
 def rows_layout(layout: Any, shape: tuple[int, ...]) -> dict:
-    """What a seal binds the rows to: a :class:`~.schema.PackedLayout`'s row bytes and fields, and the rows' shape.
+    """What a seal binds the rows to: a :class:`~.layout.PackedLayout`'s row bytes and fields, and the rows' shape.
 
     Example:
-        >>> from torchrl_robotmem.storage.schema import PackedLayout
+        >>> from torchrl_robotmem.storage.layout import PackedLayout
         >>> rows_layout(PackedLayout({"x": {"dtype": "float32", "shape": [2]}}), (10,))
         {'row_bytes': 8, 'fields': [['x', 0, 8, 'float32', [2]]], 'shape': [10]}
     """
@@ -159,6 +159,7 @@ class RowFile:
         self.name: str | None = None  # the path of the file in use (None: a private, unlinked file)
         self.copy_on_write = False  # a reader mapping the store's sealed file
         self.sealed = False  # the file in use holds the rows of the record it was opened for
+        self.claimed = False  # a writer has unsealed the file for its writes (claim)
         self.open_ends: list[int] = []  # the seal's rows that end an episode left open (see ``seal``)
         self.maps: list[mmap.mmap] = []  # the newest mappings (a growth maps again; older views keep theirs)
         self.retired: int | None = None  # the file a new layout moved from (closed at release)
@@ -220,10 +221,13 @@ class RowFile:
         return False
 
     def claim(self) -> None:
-        """A writer whose open succeeded: removes the seal before its first write into the file (from then on
-        the file may run ahead of the commits) and the own files of writers that are gone."""
-        if self.read_only or self.folder is None or not os.path.isdir(self.folder):
+        """Before a writer's first write into the file: removes the seal (from then on the file may run ahead
+        of the commits) and the own files of writers that are gone. Called by the mapping's owner
+        (:class:`~.mirror.RamMirror`) before each write; only the first call does anything, so an open that
+        writes nothing (a reader's, a failed one, a writer that only samples) changes nothing here."""
+        if self.claimed or self.read_only or self.folder is None or not os.path.isdir(self.folder):
             return
+        self.claimed = True
         if self.name == os.path.join(self.folder, ROWS_FILE):
             self._unseal()
         self._remove_stale()

@@ -1,4 +1,4 @@
-"""The row schema: what a store holds, how writes are checked, and the packed RAM mirror.
+"""A store's schema: its columns, their data kind and constants, how writes are checked, the arrays created for them.
 
 * **Schema**: ``{array path: {"dtype", "shape"}}`` for every stored leaf
   (``("next", "observation")`` -> ``"next/observation"``), recorded in the
@@ -12,15 +12,38 @@
   stored is ever imported or unpickled: a tensorclass comes back as its class
   only if that class is already imported in the reading process, else as a
   TensorDict.
-* **Packed mirror**: every row's leaves live side by side in one
-  ``uint8`` buffer ``[*batch, row_bytes]``; the storage's ``_storage``
-  TensorDict holds strided views of it (what samplers and TorchRL read), and a
-  sample is ONE gather of whole rows instead of one per key.
+* **Constants**: non-tensor entries, one JSON scalar shared by every row, kept
+  in the store's metadata (:func:`split_constants`, :func:`with_constants`).
+* **A store's columns**: :class:`StoreSchema` holds what a store's commit record
+  says about its columns (``kind``, ``constants``, with the RAM mirror's
+  ``schema`` / ``chunk_rows`` / ``inner_shape``) and makes the changes a write
+  brings: the arrays of a first write (:meth:`StoreSchema.create`), columns
+  added later (:meth:`StoreSchema.add_columns`, whose older rows read zeros)
+  and new constants. Everything above it here is pure functions.
+
+How a row's columns sit in the packed RAM mirror is :mod:`.layout`'s job.
+
+Example:
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> from torchrl_robotmem.storage.handle import StoreHandle
+    >>> from torchrl_robotmem.storage.mirror import RamMirror
+    >>> from torchrl_robotmem.storage.schema import StoreSchema
+    >>> h = StoreHandle("memory://store-schema-doc", read_only=False)
+    >>> h.open()
+    >>> h.create({}, max_size=8, chunk_rows=4, ndim=1)
+    >>> arrays = {}
+    >>> cols = StoreSchema(h, RamMirror(8), arrays)
+    >>> record = cols.create(TensorDict({"x": torch.zeros(2, 3)}, [2]), single=False)
+    >>> record["schema"]["x"], sorted(arrays)
+    ({'dtype': 'float32', 'shape': [3]}, ['x'])
+    >>> h.release()
 """
 from __future__ import annotations
 
 import math
 import sys
+import warnings
 from typing import Any
 
 import torch
@@ -29,10 +52,13 @@ from tensordict.base import _is_leaf_nontensor
 from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, treespec_loads
 
 from . import _backend
-from .format import ARRAY_CONFIG
+from .context import user_stacklevel
+from .format import ARRAY_CONFIG, write_zero_chunks
+from .layout import PackedLayout
+from .tags import TAG_KEYS
 
 __all__ = [
-    "DataKind", "PackedLayout", "check_against", "create_arrays", "default_chunk_rows", "spec_of", "split_constants",
+    "DataKind", "StoreSchema", "check_against", "create_arrays", "default_chunk_rows", "spec_of", "split_constants",
     "with_constants",
 ]
 
@@ -283,79 +309,6 @@ def check_against(schema: dict[str, dict], data: TensorDictBase, batch_dims: int
     return new, missing
 
 
-# -- packed mirror ----------------------------------------------------------------------
-
-
-class PackedLayout:
-    """Byte offsets of every leaf inside one packed row.
-
-    Leaves are ordered by item size (largest first) so each starts aligned to
-    its own item size, and the row is padded to 8 bytes: every column is then a
-    valid strided view of the ``uint8`` buffer.
-
-    Example:
-        >>> layout = PackedLayout({"a": {"dtype": "float32", "shape": [3]}, "b": {"dtype": "int64", "shape": []}})
-        >>> layout.row_bytes, [(p, o) for p, o, *_ in layout.fields]
-        (24, [('b', 0), ('a', 8)])
-    """
-
-    def __init__(self, schema: dict[str, dict]) -> None:
-        fields = []
-        items = sorted(
-            schema.items(), key=lambda kv: -_backend.numpy_dtype(_backend.torch_dtype(kv[1]["dtype"])).itemsize
-        )
-        off = 0
-        for path, spec in items:
-            dtype = _backend.torch_dtype(spec["dtype"])
-            size = _backend.numpy_dtype(dtype).itemsize
-            off = -(-off // size) * size
-            nbytes = size * math.prod(spec["shape"])
-            fields.append((path, off, nbytes, dtype, tuple(spec["shape"])))
-            off += nbytes
-        self.fields = fields
-        self.row_bytes = max(8, -(-off // 8) * 8)
-        # nested dict skeleton: ("next", "obs") -> {"next": {"obs": ...}}
-        self._keys = [_backend.path_to_key(p) for p, *_ in fields]
-
-    def allocate(self, batch_shape: tuple[int, ...], device: Any) -> torch.Tensor:
-        # empty, not zeros: the OS maps untouched pages lazily, so a 1M-row mirror
-        # costs nothing until rows arrive (rows past len are never read, and the
-        # commit engine zero-fills them before they reach the disk)
-        return torch.empty((*batch_shape, self.row_bytes), dtype=torch.uint8, device=device)
-
-    def views(self, buf: torch.Tensor, skip: tuple = ()) -> TensorDictBase:
-        """A TensorDict of strided views of ``buf`` (``[*batch, row_bytes]``), one per leaf not in ``skip``."""
-        batch = buf.shape[:-1]
-        source: dict = {}
-        for key, (_, off, nbytes, dtype, shape) in zip(self._keys, self.fields):
-            if key in skip:
-                continue
-            col = buf[..., off : off + nbytes].view(dtype).view(torch.Size((*batch, *shape)))
-            if isinstance(key, str):
-                source[key] = col
-            else:
-                node = source
-                for part in key[:-1]:
-                    node = node.setdefault(part, {})
-                node[key[-1]] = col
-        return _unsafe_td(source, batch, buf.device)
-
-
-def _unsafe_td(source: dict, batch: torch.Size, device) -> TensorDictBase:
-    """``TensorDict(source, batch)`` without re-validating shapes we built (8x faster)."""
-    out = {k: _unsafe_td(v, batch, device) if isinstance(v, dict) else v for k, v in source.items()}
-    return TensorDict._new_unsafe(out, batch_size=torch.Size(batch), device=device)
-
-
-def env_names_of(value: Any, n: int) -> list[str] | None:
-    """Env names carried by a non-tensor ``"env"`` entry, else ``None``."""
-    if isinstance(value, NonTensorStack):
-        return [str(x) for x in value.tolist()]
-    if isinstance(value, NonTensorData):
-        return [str(value.data)] * n
-    return None
-
-
 # -- the store's arrays ------------------------------------------------------------------
 
 
@@ -399,3 +352,119 @@ def create_arrays(group: Any, schema: dict[str, dict], *, rows: int, inner_shape
             fill_value=0, overwrite=True, config=ARRAY_CONFIG,
         )
     return out
+
+
+# -- a store's columns ------------------------------------------------------------------
+
+
+class StoreSchema:
+    """The data kind, constants and arrays of one store's columns.
+
+    Args:
+        handle (StoreHandle): the store's handle (its ``group`` holds the arrays).
+        mirror (RamMirror): the store's RAM rows (its ``schema`` is the column table).
+        arrays (dict): the commit engine's open arrays by path; created arrays are added.
+
+    Keyword Args:
+        compressor (str or None): codec of the arrays created. Defaults to ``"blosc"``.
+        level (int): codec level. Defaults to 1.
+
+    Example:
+        >>> from torchrl_robotmem.storage.mirror import RamMirror
+        >>> cols = StoreSchema(None, RamMirror(4), {})
+        >>> cols.sync({"kind": None, "constants": {"label": "a"}})
+        >>> cols.kind.kind, cols.constants
+        ('tensordict', {'label': 'a'})
+    """
+
+    def __init__(self, handle, mirror, arrays: dict, *, compressor: str | None = "blosc", level: int = 1) -> None:
+        self.handle = handle
+        self.mirror = mirror
+        self.arrays = arrays
+        self.compressor = compressor
+        self.level = int(level)
+        self.kind = DataKind.from_json(None)
+        self.constants: dict[str, Any] = {}  # non-tensor entries, by column path
+        self.warned = False  # the planner's warning is given once a store handle
+
+    def sync(self, attrs: dict) -> None:
+        """Takes the columns from a commit record (at open, refresh, journal replay)."""
+        self.constants = dict(attrs.get("constants") or {})
+        self.kind = DataKind.from_json(attrs.get("kind"))
+        inner = attrs.get("inner_shape")
+        self.mirror.inner_shape = tuple(inner) if inner is not None else ()
+        self.mirror.chunk_rows = attrs.get("chunk_rows")
+        self.mirror.configure(attrs.get("schema"))
+
+    def note(self, plan) -> None:
+        """What a valid plan says of the columns: the data kind (first write) and a warning, given once.
+
+        Args:
+            plan (WritePlan): the plan :func:`~.planner.plan_write` made of the write.
+        """
+        if plan.warning is not None and not self.warned:
+            self.warned = True
+            warnings.warn(plan.warning, stacklevel=user_stacklevel())  # at the user's line
+        if self.mirror.schema is None:
+            self.kind = plan.kind  # recorded with the schema at the first write
+
+    def create(self, data: TensorDictBase, single: bool) -> dict:
+        """Lays out the first write's columns: arrays, chunk rows, the mirror's schema. Returns their record.
+
+        The mirror's ``max_size`` is rounded to whole items (as TorchRL does for ``ndim > 1``);
+        the mirror is to be allocated before the record is committed.
+        """
+        row = data if single else data[0]
+        schema = spec_of(row.reshape(-1)[0] if row.batch_dims else row)
+        m = self.mirror
+        m.inner_shape = tuple(row.batch_size)
+        if m.chunk_rows is None:  # a memory without a declared capacity will grow: chunks of a large memory
+            m.chunk_rows = default_chunk_rows(PackedLayout(schema).row_bytes * m.inner_numel,
+                                              1 << 30 if m.unbounded else m.max_dim0)
+        if m.unbounded:
+            m.max_size = max(m.max_size, m.chunk_rows)  # its first rows: one chunk
+        m.max_size = m.max_dim0 * m.inner_numel
+        self._create_arrays(schema, filled=None)
+        m.configure(schema)
+        # Schema first: a store whose arrays exist but whose schema is unknown would not reopen.
+        return {"schema": schema, "chunk_rows": m.chunk_rows, "inner_shape": list(m.inner_shape),
+                "kind": self.kind.to_json(), "max_size": m.max_size}
+
+    def add_columns(self, data: TensorDictBase, new_paths: list[str], single: bool, *, filled: int) -> None:
+        """Adds arrays for keys the store did not hold yet; their ``filled`` older rows are zeros."""
+        row = data if single else data[0]
+        if self.mirror.ndim > 1:
+            row = row.reshape(-1)[0]
+        added = spec_of(row.select(*[_backend.path_to_key(p) for p in new_paths]))
+        self._create_arrays(added, filled=filled)
+        self.mirror.configure({**self.mirror.schema, **added})
+
+    def add_constants(self, new: dict[str, Any]) -> dict:
+        """Records new non-tensor entries; returns the record's ``constants`` update."""
+        self.constants = {**self.constants, **new}
+        return {"constants": dict(self.constants)}
+
+    def state(self) -> dict:
+        """The columns' part of ``ZarrStorage.state_dict()["zarr"]``: the data kind and the constants."""
+        return {"kind": self.kind.to_json(), "constants": dict(self.constants)}
+
+    def _create_arrays(self, schema: dict[str, dict], *, filled: int | None) -> None:
+        m = self.mirror
+        arrays = create_arrays(self.handle.group, schema, rows=m.max_dim0, inner_shape=m.inner_shape,
+                               chunk_rows=m.chunk_rows, compressor=self.compressor, level=self.level)
+        self.arrays.update(arrays)
+        if filled is not None:  # keys added later: their older rows are zeros, in chunk files
+            for arr in arrays.values():
+                write_zero_chunks(arr, filled, m.chunk_rows)
+
+    # -- what TorchRL sees ------------------------------------------------------------
+
+    def as_stored(self, views: TensorDictBase) -> Any:
+        """The data as the user wrote it, on the mirror's views (a TensorDict, the tensor, a tensorclass, a pytree)."""
+        return self.kind.from_tensordict(views.exclude(*TAG_KEYS) if self.kind.kind != "tensordict" else views)
+
+    def rows_out(self, rows: TensorDictBase) -> Any:
+        """Rows read from the mirror, with the constants, as the store's data kind."""
+        if self.constants:
+            rows = with_constants(rows, self.constants)
+        return self.kind.from_tensordict(self.kind.with_groups(rows))

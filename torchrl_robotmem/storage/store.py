@@ -16,19 +16,17 @@ from typing import Any
 import torch
 
 from . import _backend, lifecycle, loader, writer_sync
-from ._commit_worker import CommitWorker
 from .commit import CommitEngine
 from .context import missing_context, user_stacklevel
-from .format import UNBOUNDED, dims, grown_size, writing_handles
+from .format import UNBOUNDED, dims, grown_size
 from .handle import StoreHandle
+from .layout import PackedLayout
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
-from .registry import TagRegistry
 from .rowfile import RowFile, rows_layout
-from .schema import PackedLayout, with_constants
-from .store_schema import StoreSchema
+from .schema import StoreSchema, with_constants
 from .summary import summarize
-from .tags import TAG_KEYS
+from .tags import TAG_KEYS, TagRegistry
 
 __all__ = ["GOAL_CONDITIONED", "MemoryStore"]
 
@@ -124,7 +122,7 @@ class MemoryStore:
             max_dim0, _, inner = dims(attrs)
             layout = rows_layout(PackedLayout(attrs["schema"]), (max_dim0, *inner))
         self.rows_sealed = self.rows is not None and self.rows.open(attrs, layout=layout)
-        if not self.rows_sealed and self.read_only and self.handle.local_dir is not None:
+        if not self.rows_sealed and self.handle.local_dir is not None:
             _backend.refuse_links(self.handle.local_dir, self.handle.path, chunks=None)  # the chunks will be read
         return self.rows_sealed
 
@@ -147,11 +145,9 @@ class MemoryStore:
         if self.goal_conditioned != self.recorded_goal_conditioned:
             self.engine.update_attrs({GOAL_CONDITIONED: self.goal_conditioned})
             self.recorded_goal_conditioned = self.goal_conditioned
-        if self.rows is not None:
-            self.rows.claim()  # unsealed before the first write into the row file
-        if self.engine.worker_path is not None:
-            CommitWorker.get()  # started now, not at build: its imports overlap the first writes, not the open's reads
-        self.engine.arrays.update(writing_handles(self.handle.group, self.mirror.schema or ()))
+        # the row file is claimed (unsealed) by the mirror before its first write into it; the commit worker
+        # starts with the first commit (which runs in-process until the worker is ready), and the writing
+        # handles are opened by the first in-process commit that needs them (CommitEngine._array)
 
     def note_stored(self, n0: int) -> None:
         """Rows past the committed metadata may survive a crash (journal replays): never

@@ -20,7 +20,7 @@ from . import compat, lifecycle, loader
 from .checkpointer import ZarrCheckpointer
 from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
-from .planner import check_rows, completes_chunk, cursor_rows, last_index, plan_write, write_span
+from .planner import StoreView, check_rows, completes_chunk, cursor_rows, last_index, plan_write, write_span
 from .schema import DataKind
 from .state import rows_of_state, source_kind, state_rows
 from .store import MemoryStore
@@ -279,7 +279,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         """``set``, for rows of any kind written as TensorDicts (``as_kind``) and rows that keep their tags."""
         try:
             self._store.check_writable()
-            view = self._store_schema.view(self.path, self.ndim, self.initialized, self._tags)
+            view = StoreView.of(self.path, self.ndim, self.initialized, self._store_schema, self._tags)
             plan = plan_write(view, cursor, data, set_cursor=set_cursor, as_kind=as_kind, keep_tags=keep_tags)
         except Exception:
             if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
@@ -352,7 +352,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def check_schema(self, data: TensorDictBase) -> None:
         """Raises, naming the key, unless ``data`` (batch ``[N]``) could be written (tags ignored; nothing is written)."""
-        check_rows(self._store_schema.view(self.path, self.ndim, self.initialized, self._tags), data)
+        check_rows(StoreView.of(self.path, self.ndim, self.initialized, self._store_schema, self._tags), data)
 
     def _init_schema(self, data: TensorDictBase, single: bool) -> None:
         record = self._store_schema.create(data, single)

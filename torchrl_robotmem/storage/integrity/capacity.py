@@ -18,7 +18,7 @@ import os
 from .. import _backend
 from ..errors import Problem
 from ..format import dims
-from ..schema import PackedLayout
+from ..layout import PackedLayout
 
 __all__ = ["capacity_problem"]
 

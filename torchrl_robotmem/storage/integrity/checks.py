@@ -22,11 +22,13 @@ Example:
 """
 from __future__ import annotations
 
+import asyncio
 import warnings
 from collections.abc import Callable
 from typing import Any
 
 import zarr
+from zarr.core.sync import sync as zarr_sync
 
 from ..errors import IntegrityError, Problem
 from ..format import decode_chunks, dims, numel
@@ -63,8 +65,11 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
     if capacity is not None:  # before anything is listed or allocated
         raise ValueError(f"The store at {path!r} cannot be opened on this machine: {capacity.what}. "
                          f"Nothing was read or changed; `robotmem verify {path}` checks it chunk by chunk.")
-    if not problems and served is not None and served(attrs) and read_only and not decode and on_damage == "raise":
-        return attrs  # a reader reads no array: its rows come from the sealed file (a writer still lists the chunks)
+    sealed = not problems and served is not None and served(attrs)
+    if sealed and read_only and not decode and on_damage == "raise":
+        return attrs  # a reader reads no array: its rows come from the sealed file
+    if sealed and not decode:
+        list_chunks = False  # a writer checks the arrays it will write; it reads no chunk (verify lists them)
     if not problems:
         problems += _array_problems(group, attrs, store=store, local_dir=local_dir, list_chunks=list_chunks,
                                     decode=decode or on_damage == "warn", decode_journal=decode)
@@ -89,8 +94,12 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
 def _array_problems(group: Any, attrs: dict, *, store: Any, local_dir: Any, list_chunks: bool, decode: bool,
                     decode_journal: bool) -> list[Problem]:
     """The arrays and chunk files of sane attributes; with ``decode``, every chunk below the length decoded."""
+    nodes = _open_nodes(group, list(attrs.get("schema") or ()))
+
     def get_array(p):
-        node = group[p]
+        node = nodes[p] if p in nodes else group[p]
+        if isinstance(node, BaseException):
+            raise node
         if not isinstance(node, zarr.Array):
             raise ValueError(f"{p!r} is a group, not an array")
         return node
@@ -108,3 +117,24 @@ def _array_problems(group: Any, attrs: dict, *, store: Any, local_dir: Any, list
         if journal and decode_journal:
             problems += decode_journal_chunks(group.__getitem__, attrs)
     return problems
+
+
+def _open_nodes(group: Any, paths: list[str]) -> dict[str, Any]:
+    """The nodes at ``paths`` opened together, in one round trip to Zarr's event loop (not one per array).
+
+    Each value is the node (``zarr.Array`` / ``zarr.Group``), or the exception its open raised (raised by the
+    caller as ``group[path]`` would have raised it).
+    """
+    async_group = group._async_group
+
+    async def one(path):
+        try:
+            node = await async_group.getitem(path)
+        except Exception as err:  # noqa: BLE001 - handed to the caller, which raises it where group[path] would
+            return err
+        return zarr.Array(node) if isinstance(node, zarr.AsyncArray) else zarr.Group(node)
+
+    async def every():
+        return await asyncio.gather(*(one(p) for p in paths))
+
+    return dict(zip(paths, zarr_sync(every())))

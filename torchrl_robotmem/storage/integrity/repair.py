@@ -139,18 +139,29 @@ def repair(path: Any, *, mode: str = "truncate", storage_options: dict | None = 
     try:
         before = verify(path, storage_options=storage_options)  # under the lock: no writer changes it meanwhile
         if before.ok:
+            actions = _remove_partials(local_dir, dry_run)
             if not dry_run and local_dir is not None and any(p.severity == "error" for p in row_file_problems(local_dir)) \
                     and remove_rows(local_dir):
-                return RepairReport(before, before, ["deleted the row file (_rows/), which differs from the committed "
-                                                     "chunks: the next open fills it from them"])
-            return RepairReport(before, before)
+                actions.append("deleted the row file (_rows/), which differs from the committed chunks: the next open "
+                               "fills it from them")
+            return RepairReport(before, before, actions)
         if any(p.kind == "format" for p in before.problems):
             raise IntegrityError(before.path, before.errors, action="repair does not touch a store of a newer format:")
         metas = _refusals(before, store, local_dir)
-        return _repair(before, store, local_dir, path, storage_options, dry_run, metas)
+        report = _repair(before, store, local_dir, path, storage_options, dry_run, metas)
+        report.actions[:0] = _remove_partials(local_dir, dry_run)
+        return report
     finally:
         if lock is not None:
             lock.release()
+
+
+def _remove_partials(local_dir: Any, dry_run: bool) -> list[str]:
+    """Removes every ``*.partial`` file of a killed write (a writer's open removes only those where it writes)."""
+    if dry_run or local_dir is None:
+        return []
+    removed = _backend.remove_partial_files(local_dir, {})  # no schema: every folder is listed
+    return [f"removed {removed} partial file(s) of writes a killed writer left"] if removed else []
 
 
 def _writer_lock(path: Any, local_dir: Any, storage_options: dict | None):

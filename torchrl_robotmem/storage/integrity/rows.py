@@ -27,8 +27,8 @@ import numpy as np
 from .. import _backend
 from ..errors import Problem
 from ..format import dims
+from ..layout import PackedLayout
 from ..rowfile import ROWS_DIR, ROWS_FILE, RowFile, rows_layout
-from ..schema import PackedLayout
 
 __all__ = ["row_file_problems"]
 
