@@ -11,6 +11,7 @@ import torch
 import zarr
 
 from torchrl_robotmem.storage import _backend
+from torchrl_robotmem.storage.contained import ContainedStore
 from torchrl_robotmem.storage.fast_write import ChunkCodec, plan_array, write_chunks
 from torchrl_robotmem.storage.format import ARRAY_CONFIG
 from torchrl_robotmem.storage.schema import create_arrays
@@ -121,12 +122,19 @@ def _all_files(root) -> list[str]:
     return [os.path.join(d, f) for d, _, files in os.walk(root) for f in files]
 
 
+def _store(path, kind: str):
+    """A plain LocalStore (fast_write looks at the folders itself) or the writer's ContainedStore (its check)."""
+    return str(path) if kind == "local" else ContainedStore(str(path))
+
+
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX symbolic links")
+@pytest.mark.parametrize("kind", ["local", "contained"])
 @pytest.mark.parametrize("link", ["obs/c", "obs/c/1"])
-def test_a_chunk_folder_that_links_outside_the_store_is_refused(tmp_path, link):
+def test_a_chunk_folder_that_links_outside_the_store_is_refused(tmp_path, link, kind):
     outside = tmp_path / "outside"
     outside.mkdir()
-    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w", zarr_format=3)
+    (tmp_path / "s.zarr").mkdir()
+    group = zarr.open_group(_store(tmp_path / "s.zarr", kind), mode="w", zarr_format=3)
     arr = create_arrays(group, {"obs": {"dtype": "float32", "shape": [3]}}, rows=ROWS, inner_shape=(4,),
                         chunk_rows=CHUNK, compressor="zstd", level=1)["obs"].with_config(ARRAY_CONFIG)
     os.makedirs(tmp_path / "s.zarr" / os.path.dirname(link), exist_ok=True)
@@ -135,14 +143,17 @@ def test_a_chunk_folder_that_links_outside_the_store_is_refused(tmp_path, link):
     with pytest.raises(OSError) as info:
         write_chunks(lambda p: arr, {0: {"obs": rows}, 1: {"obs": rows}}, CHUNK)
     assert info.value.errno == errno.ELOOP and link in str(info.value)
+    assert (plan_array(arr)[2] is not None) == (kind == "contained")  # the store's own check, where it has one
     assert os.listdir(outside) == [], "a file was written through the link"
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX symbolic links")
-def test_a_chunk_file_that_is_a_link_is_replaced_not_written_through(tmp_path):
+@pytest.mark.parametrize("kind", ["local", "contained"])
+def test_a_chunk_file_that_is_a_link_is_replaced_not_written_through(tmp_path, kind):
     secret = tmp_path / "secret"
     secret.write_bytes(b"private")
-    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w", zarr_format=3)
+    (tmp_path / "s.zarr").mkdir()
+    group = zarr.open_group(_store(tmp_path / "s.zarr", kind), mode="w", zarr_format=3)
     arr = create_arrays(group, {"obs": {"dtype": "float32", "shape": [3]}}, rows=ROWS, inner_shape=(),
                         chunk_rows=CHUNK, compressor=None, level=1)["obs"].with_config(ARRAY_CONFIG)
     os.makedirs(tmp_path / "s.zarr" / "obs" / "c" / "0")
@@ -166,14 +177,21 @@ def test_every_write_ends_before_the_first_error_is_raised(tmp_path):
     assert not [f for f in _all_files(tmp_path) if f.endswith(".partial")]
 
 
-def test_the_commit_worker_loads_it_without_torch():
-    """The worker (a script) loads fast_write by path: no package import, no torch (its start time)."""
-    import subprocess
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/PID/maps")
+def test_the_commit_worker_imports_it_without_torch():
+    """The worker (a script) imports fast_write as a top-level module: no package import, no torch (its start time)."""
+    import time
 
-    from torchrl_robotmem.storage import _commit_worker
+    from torchrl_robotmem.storage._commit_worker import CommitWorker
 
-    code = (f"import runpy, sys; w = runpy.run_path({_commit_worker.__file__!r}); fw = w['_sibling']('fast_write'); "
-            f"print(fw.write_chunks.__module__, 'torch' in sys.modules, 'torchrl_robotmem' in sys.modules)")
-    out = subprocess.run([sys.executable, "-s", "-c", code], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.split() == ["_robotmem_storage.fast_write", "False", "False"], out.stdout
+    worker = CommitWorker()
+    try:
+        deadline = time.monotonic() + 120
+        while not worker.ready():  # fast_write is imported before the worker says it is ready
+            assert time.monotonic() < deadline, "the commit worker never became ready"
+            time.sleep(0.02)
+        maps = open(f"/proc/{worker.proc.pid}/maps").read()
+    finally:
+        worker.discard()
+    assert "blosc" in maps, "fast_write's codecs are not loaded in the worker"
+    assert "libtorch" not in maps, "the commit worker loaded torch"

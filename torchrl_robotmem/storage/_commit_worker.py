@@ -7,10 +7,10 @@ a child process the foreground only pays for one ``memcpy`` of the chunk and a
 pipe write (which releases the GIL).
 
 This file runs as a script (``python _commit_worker.py``) and imports nothing
-from the package: only the standard library, numpy and zarr, and its sibling
-:mod:`.fast_write` (the chunk writer of both commit paths) loaded by path
-(:func:`_sibling`), never the package (which imports torch), so it starts in a
-fraction of a second. The parent side is :class:`CommitWorker`, used by
+from the package: only the standard library, numpy and zarr, and its siblings
+:mod:`.contained` and :mod:`.fast_write` (the chunk writer of both commit paths)
+as top-level modules (this folder is the script's ``sys.path[0]``), never the
+package (which imports torch), so it starts in a fraction of a second. The parent side is :class:`CommitWorker`, used by
 :class:`~torchrl_robotmem.storage.commit.CommitEngine`.
 
 Protocol: framed messages over a Unix socket pair. A frame is an 8-byte
@@ -46,7 +46,6 @@ identified and taken over (see ``WriterLock``).
 """
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import select
@@ -57,7 +56,6 @@ import subprocess
 import sys
 import threading
 import time
-import types
 from typing import Any
 
 _HEADER = struct.Struct("<Q")
@@ -177,24 +175,11 @@ def _split(payload: bytearray, header: dict) -> dict[int, dict[str, Any]]:
     return out
 
 
-_SIBLINGS = "_robotmem_storage"  # the package name this folder's modules are loaded under, without the package
-
-
-def _sibling(name: str) -> Any:
-    """Module ``name`` of this folder, loaded by path under a bare package (no ``__init__``: no torch).
-
-    Its relative imports resolve to this folder's modules, loaded the same way.
-    """
-    if _SIBLINGS not in sys.modules:
-        pkg = types.ModuleType(_SIBLINGS)
-        pkg.__path__ = [os.path.dirname(os.path.abspath(__file__))]
-        sys.modules[_SIBLINGS] = pkg
-    return importlib.import_module(f"{_SIBLINGS}.{name}")
-
-
 def _write_chunks(store: _Store, payload: dict, chunk_rows: int, prefix: str = "") -> None:
     """The commit engine's chunk writer (``fast_write.write_chunks``), on this store's arrays."""
-    _sibling("fast_write").write_chunks(store.array, payload, chunk_rows, prefix, plans=store.plans)
+    from fast_write import write_chunks  # this folder is the script's sys.path[0]: no package import
+
+    write_chunks(store.array, payload, chunk_rows, prefix, plans=store.plans)
 
 
 def _commit(store: _Store, header: dict, payload: bytearray) -> None:
@@ -239,7 +224,7 @@ def _serve(fd: int, ppid: int) -> None:
     # every chunk is written, all-zero ones too: a chunk file missing below the
     # committed length is damage (see integrity.py), never "all fill value"
     zarr.config.set({"array.write_empty_chunks": True})
-    _sibling("fast_write")  # imported before the worker says it is ready
+    import fast_write  # noqa: F401 - imported before the worker says it is ready (this folder is sys.path[0])
     sock = socket.socket(fileno=fd)
     sys.stdout = sys.stderr
     stores: dict[str, _Store] = {}

@@ -21,12 +21,12 @@ rename replaces a link at the chunk's name, never what it names.
 
 :func:`write_chunks` is the chunk writer of the commit engine
 (:mod:`.commit`, in-process) and of the commit worker (:mod:`._commit_worker`,
-which loads this file by path): a chunk of a local array with a known pipeline
+which imports this file as a top-level module): a chunk of a local array with a known pipeline
 is written here, any other (another store, codec, a write that does not cover
 the chunk) through Zarr's ``setitem``, as before.
 
 This module imports only the standard library, NumPy, numcodecs, google_crc32c
-and Zarr: the commit worker loads it without the package (and without torch).
+and Zarr: the commit worker imports it without the package (and without torch).
 
 Example:
     >>> import os, tempfile, numpy as np, zarr
