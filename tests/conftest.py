@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import os
 import random
+import tempfile
 
 import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+
+from torchrl_robotmem.storage.rowfile import CACHE_ENV
 
 torch.set_num_threads(1)
 
@@ -50,6 +53,8 @@ FULL_ENV = "ROBOTMEM_FULL"
 
 
 def pytest_configure(config):
+    # row files of URL stores (and readers' private ones) under a folder of this run, never ~/.cache
+    os.environ.setdefault(CACHE_ENV, tempfile.mkdtemp(prefix="robotmem-test-cache-"))
     config.addinivalue_line(
         "markers", f"full: a second test of a capability the default tier already covers, a minute or so; "
         f"runs with {FULL_ENV}=1 (make test-full), which every landing runs too")

@@ -350,3 +350,42 @@ def test_chunks_written_by_another_process_after_a_listing_are_read(s3_url, s3_s
     writer = ZarrStorage(s3_url, storage_options=so)  # closes the episode the last writer left open
     _assert_rows(writer, 400, {399})
     writer.close()
+
+
+def test_a_url_stores_row_file_is_cached_locally_and_never_served_for_another_session(s3_url, s3_server, tmp_path,
+                                                                                      monkeypatch):
+    """A writer's clean close seals the rows in the local cache folder of the URL: the next open serves
+    them without reading a chunk. A store replaced at the same URL with other rows of the same count (same
+    length, counters and names: only the writing session differs) is filled from its chunks, never served
+    the cached rows of the store before."""
+    from torchrl_robotmem.storage.rowfile import CACHE_ENV, ROWS_DIR, url_cache_dir
+
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    so = s3_server.storage_options
+    rows = make_transitions(100)
+    with ZarrStorage(s3_url, 200, chunk_rows=64, storage_options=so) as st:
+        st.set(slice(0, 100), rows)
+    folder = url_cache_dir(s3_url, so)
+    assert sorted(os.listdir(os.path.join(folder, ROWS_DIR))) == ["rows.bin", "seal.json"]
+    with ZarrStorage(s3_url, read_only=True, storage_options=so) as st:
+        assert st.row_file["sealed"] is True
+        _assert_rows(st, 100)
+
+    cached = os.path.join(folder, ROWS_DIR)
+    os.link(os.path.join(cached, "rows.bin"), tmp_path / "first.bin")  # the first store's sealed file, kept
+    first_seal = Path(cached, "seal.json").read_bytes()
+    import s3fs
+
+    fs = s3fs.S3FileSystem(**so, skip_instance_cache=True, use_listings_cache=False)
+    fs.rm(s3_url.removeprefix("s3://"), recursive=True)  # the store deleted, and made again with other rows
+    other = rows.clone()
+    other["observation"] += 1000.0
+    with ZarrStorage(s3_url, 200, chunk_rows=64, storage_options=so) as st:
+        st.set(slice(0, 100), other)
+    # the first store's sealed file put back: the records agree in length, schema, counters and names, and
+    # differ in the writing session only
+    os.replace(tmp_path / "first.bin", os.path.join(cached, "rows.bin"))
+    Path(cached, "seal.json").write_bytes(first_seal)
+    with ZarrStorage(s3_url, read_only=True, storage_options=so) as st:
+        assert st.row_file["sealed"] is False
+        assert torch.equal(st.get(torch.arange(100))["observation"], other["observation"])

@@ -256,3 +256,19 @@ def test_lazy_tensor_storage_and_an_unbounded_memory_sample_alike(tmp_path):
         out.append(rb.sample()["obs"])
     assert torch.equal(out[0], out[1])
     zarr.close()
+
+
+def test_a_sealed_writer_still_refuses_an_array_whose_metadata_disagrees_with_the_record(tmp_path):
+    """A writer served by a sealed file reads each array's zarr.json alone (no chunk), and refuses one that
+    disagrees with the record's schema, naming both, before it writes anything."""
+    path = str(tmp_path / "m.zarr")
+    _write(path, 2 * CHUNK)
+    meta_file = os.path.join(path, "obs", "zarr.json")
+    meta = json.loads(open(meta_file).read())
+    meta["data_type"] = "float64"
+    with open(meta_file, "w") as f:
+        json.dump(meta, f)
+    with pytest.raises(IntegrityError, match=r"array is float64 \[1000, 3\] chunked \[64, 3\] \(obs/zarr.json\), but the schema"):
+        ZarrStorage(path)
+    with ZarrStorage(path, read_only=True) as st:  # a sealed reader opens no array: it serves the sealed rows
+        assert st.row_file["sealed"] is True and torch.equal(st["obs"], _rows(0, 2 * CHUNK)["obs"])

@@ -13,7 +13,7 @@ clean close, after its last commit and an ``fsync`` of the file; it binds
 - the file itself (device, inode, size and modification time: a file replaced, grown or written since the
   seal does not match).
 
-A writer removes the seal (durably) before its first write into the file, so a crash leaves no seal and the
+A writer removes the seal before its first write into the file, so a killed writer leaves no seal and the
 next open fills the file from the chunks. Anything that does not match is filled again, never served.
 
 Locks keep a reader's rows the committed ones: a reader that maps ``rows.bin`` holds ``flock(LOCK_SH)`` on
@@ -55,16 +55,39 @@ from typing import Any
 
 import torch
 
-__all__ = ["CACHE_ENV", "ROWS_DIR", "ROWS_FILE", "SEAL_FILE", "RowFile", "record_digest", "remove_rows", "rows_layout"]
+__all__ = ["CACHE_ENV", "ROWS_DIR", "ROWS_FILE", "SEAL_FILE", "RowFile", "record_digest", "remove_rows", "rows_layout",
+           "url_cache_dir"]
 
 ROWS_DIR = "_rows"
 ROWS_FILE = "rows.bin"
 SEAL_FILE = "seal.json"
 SEAL_VERSION = 1
-#: the directory a reader's private row file goes to (default: the system's temporary directory)
+#: the directory a reader's private row file goes to (default: the system's temporary directory), and the
+#: root of the row files of URL stores (default: ``$XDG_CACHE_HOME/torchrl_robotmem``, ``~/.cache/...``)
 CACHE_ENV = "TORCHRL_ROBOTMEM_CACHE"
 _NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _SERIAL = itertools.count(1)  # names a writer's own files apart within the process
+
+
+def url_cache_dir(url: str, storage_options: dict | None = None) -> str:
+    """The local folder that holds the row file of the store at ``url`` (an ``s3://`` store, say).
+
+    One folder per store URL and set of fsspec options (another endpoint is another store), named by
+    their sha256: ``$TORCHRL_ROBOTMEM_CACHE/stores/<digest>`` (default root ``$XDG_CACHE_HOME/torchrl_robotmem``,
+    else ``~/.cache/torchrl_robotmem``). It holds ``_rows/`` as a local store does, sealed by the writer's
+    clean close for the record it committed; the record names the writing session, so a store replaced
+    at the same URL never matches a seal of the one before. Deleting the folder loses nothing.
+
+    Example:
+        >>> url_cache_dir("s3://bucket/run.zarr") == url_cache_dir("s3://bucket/run.zarr", {})
+        True
+        >>> url_cache_dir("s3://bucket/run.zarr") != url_cache_dir("s3://bucket/run.zarr", {"endpoint_url": "x"})
+        True
+    """
+    root = os.environ.get(CACHE_ENV) or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "torchrl_robotmem")
+    key = json.dumps([url, storage_options or {}], sort_keys=True, default=str)
+    return os.path.join(root, "stores", hashlib.sha256(key.encode()).hexdigest()[:32])
 
 
 def record_digest(attrs: dict) -> str:
@@ -305,11 +328,10 @@ class RowFile:
         return seal
 
     def _unseal(self) -> None:
-        try:
+        # no fsync: a killed process's unlink is seen by the next open (the page cache outlives it), and the
+        # commits themselves are not synced either (a power loss is what `fsync` after flush() guards against)
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(self._seal_path())
-        except FileNotFoundError:
-            return
-        _fsync_dir(self.folder)
 
     def seal(self, attrs: dict, *, layout: dict, open_ends: list[int] = ()) -> None:
         """A writer's clean close: makes the file durable, names it ``rows.bin`` and seals it for ``attrs``.

@@ -8,6 +8,8 @@ left open. ``docs/storage.md`` ("Map of storage/") says which part does what.
 """
 from __future__ import annotations
 
+import os
+import secrets
 import warnings
 import weakref
 from collections.abc import Callable
@@ -23,7 +25,7 @@ from .handle import StoreHandle
 from .layout import PackedLayout
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
-from .rowfile import RowFile, rows_layout
+from .rowfile import RowFile, rows_layout, url_cache_dir
 from .schema import StoreSchema, with_constants
 from .summary import summarize
 from .tags import TAG_KEYS, TagRegistry
@@ -49,6 +51,9 @@ class MemoryStore:
         self.handle = StoreHandle(path, read_only=read_only, storage_options=storage_options)
         self.handle.flush = self.flush  # a newer writable handle in this process flushes this one first
         self.read_only = self.handle.read_only
+        # names this writing session in each record it commits: two sessions that wrote different rows never
+        # commit equal records (a row file sealed for one is never served for the other, see rowfile.py)
+        self.session = secrets.token_hex(8)
         self.on_damage = on_damage
         self.commit_process = commit_process
         self.write_count = 0  # the writer's position: its count and its next row
@@ -101,14 +106,18 @@ class MemoryStore:
         self.restored_writers = weakref.WeakSet()  # this session's state
 
     def prepare_rows(self, device) -> None:
-        """Makes the row file: a local store's ``_rows/``, a private file for a URL store; none (RAM) otherwise."""
+        """Makes the row file: a local store's ``_rows/``; a URL store's in its local cache folder
+        (:func:`.rowfile.url_cache_dir`); none (RAM) for in-memory stores and CUDA rows."""
         path = self.handle.path
         if torch.device(device).type != "cpu":
             self.rows = None  # a CUDA mirror lives in device memory
         elif self.handle.local_dir is not None:
             self.rows = RowFile(self.handle.local_dir, read_only=self.read_only)
         elif isinstance(path, str) and _backend.is_url(path) and not path.startswith("memory://"):
-            self.rows = RowFile(None, read_only=self.read_only)
+            folder = url_cache_dir(path, self.handle.storage_options)  # the same sealed file, in a local cache
+            if not self.read_only:
+                os.makedirs(folder, exist_ok=True)
+            self.rows = RowFile(folder, read_only=self.read_only)
         else:
             self.rows = None
 
@@ -227,7 +236,7 @@ class MemoryStore:
     def meta_snapshot(self, length: int, last: int | None) -> dict:
         """The record a commit writes, for ``length`` rows and the last written row ``last``."""
         return {"len": length, "cursor": self.cursor, "last_cursor": -1 if last is None else int(last),
-                "write_count": self.write_count, **self.tags.record()}
+                "write_count": self.write_count, "session": self.session, **self.tags.record()}
 
     def restore_writers(self, storage: Any, force: bool = False) -> None:
         """Puts the writers of the buffers on ``storage`` at this store's cursor and write count."""

@@ -136,9 +136,9 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self.env = attrs.get("env") if env is None else env  # by default, the previous run's env
             store.open_arrays()
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
-            if self._mirror.schema is not None:
+            if self._mirror.schema is not None:  # committed with the next commit, as any write (a crash before
+                # it leaves them open, and the next open closes them again)
                 store.close_open_episodes(len(self), self._is_full, self._own_write, self._bump_own)
-                self.flush()
 
     def _load_rows(self, attrs: dict) -> None:
         record = attrs

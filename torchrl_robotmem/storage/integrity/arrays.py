@@ -20,6 +20,7 @@ Example:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,7 @@ from ..errors import Problem
 from ..format import JOURNAL_DIR, dims, is_strict
 from .chunks import first_missing, missing_chunks
 
-__all__ = ["check_arrays", "check_journal", "decode_journal_chunks", "disagreement"]
+__all__ = ["ArrayHead", "check_arrays", "check_journal", "decode_journal_chunks", "disagreement"]
 
 
 def check_arrays(get_array, attrs: dict, *, store: Any, local_dir: Any, list_chunks: bool = True,
@@ -69,15 +70,41 @@ def check_arrays(get_array, attrs: dict, *, store: Any, local_dir: Any, list_chu
     return problems, arrays
 
 
+@dataclass(frozen=True)
+class ArrayHead:
+    """What :func:`disagreement` reads of an array (its dtype, shape and chunk shape), from its ``zarr.json``.
+
+    A writer whose rows come from a sealed row file checks its arrays with these alone: it reads no chunk,
+    and Zarr's own array objects (codec pipelines) cost more to build than the whole rest of its open.
+    """
+
+    dtype: np.dtype
+    shape: tuple
+    chunks: tuple
+
+    @classmethod
+    def of(cls, meta: Any) -> ArrayHead | None:
+        """From a parsed Zarr v3 ``zarr.json``; ``None`` for anything but a plain regular-chunked array."""
+        try:
+            if meta.get("node_type") != "array" or meta.get("zarr_format") != 3 \
+                    or meta["chunk_grid"]["name"] != "regular" or not isinstance(meta["data_type"], str):
+                return None
+            return cls(np.dtype(meta["data_type"]), tuple(int(n) for n in meta["shape"]),
+                       tuple(int(n) for n in meta["chunk_grid"]["configuration"]["chunk_shape"]))
+        except (AttributeError, KeyError, TypeError, ValueError):
+            return None
+
+
 def disagreement(arr: Any, path: str, spec: dict, attrs: dict) -> Problem | None:
     """Where an array's own ``zarr.json`` and the commit record's schema disagree, a problem naming both."""
     max_dim0, _, inner = dims(attrs)
     chunk_rows = int(attrs["chunk_rows"])
     want_dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
     want_tail = (*inner, *spec["shape"])
-    chunks = arr.metadata.chunk_grid.chunk_shape if hasattr(arr.metadata, "chunk_grid") else arr.chunks
-    if not isinstance(arr, zarr.Array):
+    if not isinstance(arr, (zarr.Array, ArrayHead)):
         return Problem("metadata", "is not an array", array=path, key=f"{path}/zarr.json")
+    chunks = arr.metadata.chunk_grid.chunk_shape if hasattr(getattr(arr, "metadata", None), "chunk_grid") \
+        else arr.chunks
     if (np.dtype(arr.dtype) == want_dtype and tuple(arr.shape[1:]) == want_tail and arr.shape[0] >= max_dim0
             and chunks[0] == chunk_rows and tuple(chunks[1:]) == tuple(arr.shape[1:])):
         return None
