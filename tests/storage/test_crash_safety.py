@@ -29,7 +29,6 @@ ahead of the metadata) and pin the bugs found by the random test.
 """
 from __future__ import annotations
 
-import asyncio
 import json
 import multiprocessing as mp
 import os
@@ -388,30 +387,31 @@ def test_sigkill_ring_store(tmp_path):
 # -- deterministic reproductions of crash-safety bugs -------------------------
 
 _TORN_CHILD = ROWS_SRC + '''
-import asyncio, json, os, signal, sys
-from zarr.storage import LocalStore
+import json, os, signal, sys, threading, time
 from torchrl.data import TensorDictReplayBuffer
-from torchrl_robotmem.storage import ZarrStorage
+from torchrl_robotmem.storage import ZarrStorage, fast_write
 path = sys.argv[1]
-# in-process commits: LocalStore.set is patched in this process only, and a commit worker that
+# in-process commits: the chunk file writer is patched in this process only, and a commit worker that
 # finished starting before the wrap would write the chunks where the patch cannot see them
 st = ZarrStorage(path, 128, chunk_rows=64, commit_interval=60, commit_process=False)
 rb = TensorDictReplayBuffer(storage=st, batch_size=4)
 rb.extend(make_rows(torch.arange(128))); st.flush()
-orig_set = LocalStore.set
-written = []
-async def store_set(self, key, value, *args, **kwargs):
+orig_write = fast_write.write_file
+written, lock = [], threading.Lock()
+def write_file(root, key, buffers, check=None):
     # the first of these arrays' wrap chunks gets written, the others never do
     if "/c/" in key and key.split("/c/")[0] in ("action", "value", "observation"):
         with open(os.path.join(path, "zarr.json")) as f:
             if json.load(f)["attributes"].get("journal"):  # the wrap commit writes its rows
-                if written:
-                    await asyncio.sleep(60)  # no other array gets there before the crash
-                written.append(key)
-                await orig_set(self, key, value, *args, **kwargs)
+                with lock:
+                    first = not written
+                    written.append(key)
+                if not first:
+                    time.sleep(60)  # no other array gets there before the crash
+                orig_write(root, key, buffers, check)
                 os.kill(os.getpid(), signal.SIGKILL)  # one array's chunk written, then crash
-    return await orig_set(self, key, value, *args, **kwargs)
-LocalStore.set = store_set
+    return orig_write(root, key, buffers, check)
+fast_write.write_file = write_file
 rb.extend(make_rows(torch.arange(128, 192))); st.flush()
 '''
 
@@ -460,18 +460,17 @@ def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):
     still held when flush() returned; the write is released only after that
     thread has had a second to return on its own.
     """
-    from zarr.core.array import AsyncArray
+    from torchrl_robotmem.storage import fast_write
 
-    orig = AsyncArray.setitem
+    orig = fast_write.write_file
     started, release = threading.Event(), threading.Event()
 
-    async def held(self, selection, value, prototype=None):  # a slow disk / object store
+    def held(root, key, buffers, check=None):  # a slow disk
         started.set()
-        while not release.is_set():  # (zarr's event loop stays free for the reads below)
-            await asyncio.sleep(0.005)
-        return await orig(self, selection, value, prototype)
+        release.wait()
+        return orig(root, key, buffers, check)
 
-    monkeypatch.setattr(AsyncArray, "setitem", held)
+    monkeypatch.setattr(fast_write, "write_file", held)
     path = tmp_path / "m.zarr"
     # in-process commits: the patched write runs in this process (the worker process has
     # the same wait: flush() returns when the worker's reply to the commit arrives)
@@ -585,7 +584,9 @@ def records_by(role):
     with open(log) as f:
         return sum(1 for line in f if json.loads(line)["role"] == role and "len" in json.loads(line)["keys"])
 
-st = ZarrStorage(path, 1000, chunk_rows=64, commit_interval=60, commit_process=mode == "worker")
+# room for every row the loop writes (no ring: a whole record has len == cursor == write_count), however
+# many rows in-process commits write before the worker has started
+st = ZarrStorage(path, 100_000, chunk_rows=64, commit_interval=60, commit_process=mode == "worker")
 rb = TensorDictReplayBuffer(storage=st, batch_size=4)
 w = 0
 # the worker takes commits over once it has started: commit until it has written three records, however long

@@ -7,8 +7,10 @@ a child process the foreground only pays for one ``memcpy`` of the chunk and a
 pipe write (which releases the GIL).
 
 This file runs as a script (``python _commit_worker.py``) and imports nothing
-from the package: only the standard library, numpy and zarr, so it starts in a
-fraction of a second. The parent side is :class:`CommitWorker`, used by
+from the package: only the standard library, numpy and zarr, and its siblings
+:mod:`.contained` and :mod:`.fast_write` (the chunk writer of both commit paths)
+as top-level modules (this folder is the script's ``sys.path[0]``), never the
+package (which imports torch), so it starts in a fraction of a second. The parent side is :class:`CommitWorker`, used by
 :class:`~torchrl_robotmem.storage.commit.CommitEngine`.
 
 Protocol: framed messages over a Unix socket pair. A frame is an 8-byte
@@ -137,6 +139,7 @@ class _Store:
 
         self.group = zarr.open_group(ContainedStore(path), mode="r+", zarr_format=3)
         self.arrays: dict[str, Any] = {}
+        self.plans: dict[str, Any] = {}  # how each array's chunks are written (fast_write.write_chunks' cache)
         # the parent's flock, shared: the store stays locked for as long as this
         # worker could still write to it, even if the parent dies first
         self.lock_fd = lock_fd
@@ -173,20 +176,10 @@ def _split(payload: bytearray, header: dict) -> dict[int, dict[str, Any]]:
 
 
 def _write_chunks(store: _Store, payload: dict, chunk_rows: int, prefix: str = "") -> None:
-    import asyncio
+    """The commit engine's chunk writer (``fast_write.write_chunks``), on this store's arrays."""
+    from fast_write import write_chunks  # this folder is the script's sys.path[0]: no package import
 
-    from zarr.core.sync import sync
-
-    writes = []
-    for c, arrays in payload.items():
-        lo = c * chunk_rows
-        for path, values in arrays.items():
-            writes.append(store.array(prefix + path)._async_array.setitem(slice(lo, lo + len(values)), values))
-
-    async def _all():
-        await asyncio.gather(*writes)
-
-    sync(_all())
+    write_chunks(store.array, payload, chunk_rows, prefix, plans=store.plans)
 
 
 def _commit(store: _Store, header: dict, payload: bytearray) -> None:
@@ -231,6 +224,7 @@ def _serve(fd: int, ppid: int) -> None:
     # every chunk is written, all-zero ones too: a chunk file missing below the
     # committed length is damage (see integrity.py), never "all fill value"
     zarr.config.set({"array.write_empty_chunks": True})
+    import fast_write  # noqa: F401 - imported before the worker says it is ready (this folder is sys.path[0])
     sock = socket.socket(fileno=fd)
     sys.stdout = sys.stderr
     stores: dict[str, _Store] = {}
@@ -255,6 +249,7 @@ def _serve(fd: int, ppid: int) -> None:
             elif op == "reset":
                 if path in stores:
                     stores[path].arrays.clear()
+                    stores[path].plans.clear()
             else:
                 store = stores.get(path)
                 if store is None:

@@ -2,8 +2,9 @@
 
 Protocol (see ``docs/storage.md``, "Commit protocol and crash safety"):
 
-1. data first: dirty chunks are written to Zarr (each chunk file is replaced
-   atomically by Zarr's local store);
+1. data first: dirty chunks are written (each chunk file replaced atomically:
+   :func:`~.fast_write.write_chunks`, the one chunk writer of this engine and of
+   the commit worker);
 2. then the metadata, in ONE atomic ``zarr.json`` replacement
    (``Group.update_attributes``): rows below the committed ``len`` are visible;
 3. chunks that overwrite committed rows (a ring wrapping around, ``rb[i] = x``)
@@ -26,7 +27,6 @@ confirmed is written again from RAM.
 """
 from __future__ import annotations
 
-import asyncio
 import os
 import threading
 import time
@@ -36,10 +36,10 @@ from typing import Any
 import numpy as np
 import torch
 import zarr
-from zarr.core.sync import sync as zarr_sync
 
 from . import _backend
 from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
+from .fast_write import write_chunks
 from .format import writing_config, writing_handles
 from .journal import replay_journal, write_journal
 
@@ -87,6 +87,7 @@ class CommitEngine:
         self.flush_done = 0
         self.inflight = 0  # commits whose payload left the dirty set but is not written yet
         self.arrays: dict[str, Any] = {}  # zarr arrays by path, opened once
+        self.plans: dict[str, Any] = {}  # how each array's chunks are written (fast_write.write_chunks' cache)
         self.last_set_time = 0.0
         self.thread: threading.Thread | None = None
         # the last commit's failure; its rows stay dirty and the next flush() retries them
@@ -127,6 +128,7 @@ class CommitEngine:
 
     def reset_arrays(self) -> None:
         self.arrays.clear()
+        self.plans.clear()
         with self._route_lock:
             if self._via_worker and self._worker_synced:
                 self._worker_request({"op": "reset", "path": self.worker_path})
@@ -392,8 +394,8 @@ class CommitEngine:
         return arr
 
     def _write_chunks(self, payload: dict[int, dict[str, np.ndarray]], prefix: str = "") -> None:
-        """Writes chunks of every array in one event-loop round trip (about 1.4x a loop of writes)."""
-        write_chunks(self._array, payload, self.mirror.chunk_rows, prefix)
+        """Writes chunks of every array (:func:`~.fast_write.write_chunks`: the chunk files directly, for a local store)."""
+        write_chunks(self._array, payload, self.mirror.chunk_rows, prefix, plans=self.plans)
 
     def _write_journal(self, payload: dict[int, dict[str, np.ndarray]], meta: dict) -> None:
         """Redo log for chunks that overwrite committed rows (ring wrap-around): see :mod:`.journal`."""
@@ -533,20 +535,3 @@ def settled_group(store: Any) -> tuple[Any, dict]:
             attrs = replay_journal(group, attrs["journal"])
     return group, attrs
 
-
-def write_chunks(array: Any, payload: dict[int, dict[str, np.ndarray]], rows: int, prefix: str = "") -> None:
-    """Writes ``payload`` (chunk id -> array path -> rows) to the arrays ``array(path)`` opens, all at once."""
-    writes = []
-    for c, arrays in payload.items():
-        lo = c * rows
-        for path, values in arrays.items():
-            writes.append(array(prefix + path)._async_array.setitem(slice(lo, lo + len(values)), values))
-
-    async def _all():
-        # every write ends before the first error is raised: none may still write a file once the caller handles it
-        results = await asyncio.gather(*writes, return_exceptions=True)
-        for result in results:
-            if isinstance(result, BaseException):
-                raise result
-
-    zarr_sync(_all())
