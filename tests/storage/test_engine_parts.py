@@ -3,6 +3,7 @@
 - ``rowfile``: the row file, its seal (what it binds, when it is served), the locks, ``remove_rows``;
 - ``format``: how an unbounded memory grows (``grown_size``) and the record's dimensions (``dims``);
 - ``planner``: the rows a cursor touches (``cursor_rows``) and the write span (``write_span``);
+- ``tags.EpisodeTagger``: episode ids of a done-split stream, against a row-by-row reference;
 - ``mirror``: the packed RAM mirror (``RamMirror``): views, writes, growth, chunk snapshots, episode ends;
 - ``_backend.links_below``: which symbolic links below a store each mode reports; ``remove_partial_files``:
   where a killed writer's partial files are removed; ``contained``: writes that refuse a linked folder.
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
 import torch
 from tensordict import LazyStackedTensorDict, TensorDict
@@ -33,6 +35,7 @@ from torchrl_robotmem.storage.rowfile import (
     remove_rows,
     rows_layout,
 )
+from torchrl_robotmem.storage.tags import EpisodeTagger
 
 RECORD = {"len": 3, "cursor": 3, "write_count": 3}
 LAYOUT = {"row_bytes": 8, "fields": [["x", 0, 8, "float32", [2]]], "shape": [4]}
@@ -225,6 +228,47 @@ def test_claim_removes_own_files_of_writers_that_are_gone_and_keeps_a_live_ones(
 
 
 # -- format -------------------------------------------------------------------------------------
+
+
+def _stream_reference(batches: list[np.ndarray], next_id: int, close_after: set[int]) -> list[list[int]]:
+    """Row by row: a row continues the stream's open episode or opens the next id; a done row closes it."""
+    out, open_id = [], None
+    for b, done in enumerate(batches):
+        ids = []
+        for d in done:
+            if open_id is None:
+                open_id, next_id = next_id, next_id + 1
+            ids.append(open_id)
+            if d:
+                open_id = None
+        out.append(ids)
+        if b in close_after:
+            open_id = None
+    return out
+
+
+@pytest.mark.parametrize("p_done", [0.02, 0.5, 1.0])
+def test_episode_ids_of_a_done_split_stream_match_a_row_by_row_reference(p_done):
+    rng = np.random.default_rng(0)  # the suite's seed is in torch/numpy's global state; this draw is fixed
+    for trial in range(20):
+        sizes = rng.integers(0, 40, size=12)
+        batches = [rng.random(int(n)) < p_done for n in sizes]
+        close_after = {int(b) for b in rng.integers(0, 12, size=2)}
+        tagger = EpisodeTagger(next_id=7)
+        got = []
+        for b, done in enumerate(batches):
+            got.append(tagger.assign(done, None).tolist())
+            if b in close_after:
+                tagger.close_stream()
+        assert got == _stream_reference(batches, 7, close_after), f"trial {trial}"
+
+
+def test_a_new_stream_after_trajectory_ids_continues_none_of_them():
+    tagger = EpisodeTagger()
+    assert tagger.assign(np.array([False, False]), np.array([3, 4])).tolist() == [0, 1]
+    assert tagger.assign(np.array([False, True]), None).tolist() == [2, 2]
+    assert tagger.assign(np.array([True, True]), np.array([3, 4])).tolist() == [0, 1]  # still open
+    assert tagger.assign(np.array([False]), None, continue_open=False).tolist() == [3]
 
 
 def test_grown_size_doubles_up_to_a_million_rows_then_adds_a_million_in_whole_chunks():

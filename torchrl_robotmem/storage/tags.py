@@ -181,16 +181,15 @@ class EpisodeTagger:
         n = len(done)
         if not continue_open:
             self._open = {}
-        if traj is not None:
-            keys = traj.astype(np.int64)
-        else:  # one stream split after done flags: keys -1, -2, ...
-            keys = -1 - (np.cumsum(done) - done)
-        # numpy, not torch: these arrays are tiny and this runs on every extend
-        uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
-        last = n - 1 - np.unique(keys[::-1], return_index=True)[1]
         open_ = self._open
         for k in [k for k in open_ if k < -1]:  # a done-split stream only continues its -1
             open_.pop(k)
+        if traj is None:
+            return torch.from_numpy(self._assign_stream(np.asarray(done, dtype=bool)))
+        # numpy, not torch: these arrays are tiny and this runs on every extend
+        keys = traj.astype(np.int64)
+        uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+        last = n - 1 - np.unique(keys[::-1], return_index=True)[1]
         ids = np.empty(len(uniq), dtype=np.int64)
         next_id = self.next_id
         order = np.argsort(first)
@@ -210,6 +209,29 @@ class EpisodeTagger:
                 open_[-1 if key < 0 else key] = int(ids[j])
         self.next_id = next_id
         return torch.from_numpy(ids[inv.reshape(-1)])
+
+    def _assign_stream(self, done: np.ndarray) -> np.ndarray:
+        """Ids of one stream of transitions split after each ``done`` (no trajectory ids): no Python loop.
+
+        Segment ``s`` (the rows after the ``s``-th done) is a new episode, except the first, which
+        continues the stream's open episode if there is one; the last stays open unless it ends done.
+        """
+        n = len(done)
+        if n == 0:
+            return np.empty(0, dtype=np.int64)
+        seg = np.cumsum(done, dtype=np.int64)
+        seg -= done  # the segment of each row: 0, 0, 1, ... (a done row ends its segment)
+        segments = int(seg[-1]) + 1
+        cont = self._open.pop(-1, None)
+        if cont is None:
+            seg_ids = np.arange(self.next_id, self.next_id + segments, dtype=np.int64)
+        else:
+            seg_ids = np.arange(self.next_id - 1, self.next_id + segments - 1, dtype=np.int64)
+            seg_ids[0] = cont
+        self.next_id = int(seg_ids[-1]) + 1 if segments > 1 or cont is None else self.next_id
+        if not done[-1]:
+            self._open[-1] = int(seg_ids[-1])
+        return seg_ids[seg]
 
 
 def open_episode_ends(
