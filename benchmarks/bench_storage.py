@@ -126,7 +126,7 @@ def extend_one(name, make, data, scratch: Path, progress: tqdm):
         res["disk_bytes"], res["disk_apparent_bytes"] = disk_bytes(path)
     if is_zarr:
         res["chunk_rows"] = storage.chunk_rows
-        res["codec"] = f"{storage._store_schema.compressor} level {storage._store_schema.level}"
+        res["codec"] = f"{storage._schema.compressor} level {storage._schema.level}"
     return res, storage, rb, path
 
 

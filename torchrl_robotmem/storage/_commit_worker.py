@@ -8,8 +8,8 @@ pipe write (which releases the GIL).
 
 This file runs as a script (``python _commit_worker.py``) and imports nothing
 from the package: only the standard library, numpy and zarr, and its siblings
-:mod:`.contained` and :mod:`.fast_write` (the chunk writer of both commit paths)
-as top-level modules (this folder is the script's ``sys.path[0]``), never the
+:mod:`.contained`, :mod:`.fast_write` (the chunk writer of both commit paths) and
+:mod:`.journal` (the commit protocol of both) as top-level modules (this folder is the script's ``sys.path[0]``), never the
 package (which imports torch), so it starts in a fraction of a second. The parent side is :class:`CommitWorker`, used by
 :class:`~torchrl_robotmem.storage.commit.CommitEngine`.
 
@@ -183,26 +183,13 @@ def _write_chunks(store: _Store, payload: dict, chunk_rows: int, prefix: str = "
 
 
 def _commit(store: _Store, header: dict, payload: bytearray) -> None:
-    chunks = _split(payload, header)
+    """One request: the commit protocol (``journal.commit``, the engine's own) on the packed chunks."""
+    from journal import commit  # this folder is the script's sys.path[0]: no package import
+
     rows = int(header["chunk_rows"] or 0)  # None before the first rows (a metadata-only commit)
-    meta = header.get("meta")
-    if header.get("overwrite"):
-        # redo journal (see commit.py): new contents first, then the record, then in place
-        for path, shape, dtype in header["journal_arrays"]:
-            jpath = f"_journal/{path}"
-            arr = store.arrays.get(jpath)
-            if arr is None or list(arr.shape) != list(shape):
-                store.arrays[jpath] = store.group.create_array(
-                    jpath, shape=tuple(shape), chunks=(rows, *shape[1:]), dtype=dtype, fill_value=0, overwrite=True
-                )
-        _write_chunks(store, chunks, rows, prefix="_journal/")
-        store.group.update_attributes({"journal": {"chunks": sorted(chunks), "meta": meta}})
-    _write_chunks(store, chunks, rows)
-    if meta is not None or header.get("overwrite"):
-        update = dict(meta or {})
-        if header.get("overwrite"):
-            update["journal"] = None
-        store.group.update_attributes(update)
+    commit(store.group, store.arrays, lambda payload, prefix="": _write_chunks(store, payload, rows, prefix),
+           _split(payload, header), header.get("meta"), chunk_rows=rows,
+           journal=header.get("journal") if header.get("overwrite") else None)
 
 
 def _watch_parent(ppid: int) -> None:
@@ -225,6 +212,7 @@ def _serve(fd: int, ppid: int) -> None:
     # committed length is damage (see integrity.py), never "all fill value"
     zarr.config.set({"array.write_empty_chunks": True})
     import fast_write  # noqa: F401 - imported before the worker says it is ready (this folder is sys.path[0])
+    import journal  # noqa: F401
     sock = socket.socket(fileno=fd)
     sys.stdout = sys.stderr
     stores: dict[str, _Store] = {}

@@ -41,7 +41,8 @@ from . import _backend
 from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
 from .fast_write import write_chunks
 from .format import writing_config, writing_handles
-from .journal import replay_journal, write_journal
+from .journal import commit as commit_protocol
+from .journal import replay_journal
 
 __all__ = ["CommitEngine"]
 
@@ -326,14 +327,8 @@ class CommitEngine:
                 if not via_worker:
                     # split into arrays outside the cv lock: the foreground only waited for the memcpy
                     payload = {c: mirror.chunk_arrays(snap) for c, snap in snapshots.items()}
-                    if overwrite:
-                        self._write_journal(payload, meta)
-                    self._write_chunks(payload)
-                    if meta is not None or overwrite:
-                        update = dict(meta or {})
-                        if overwrite:
-                            update["journal"] = None
-                        self.group.update_attributes(update)
+                    commit_protocol(self.group, self.arrays, self._write_chunks, payload, meta,
+                                    chunk_rows=mirror.chunk_rows, journal=journal_specs(mirror) if overwrite else None)
             if via_worker:
                 self._commit_in_worker(snapshots, meta, overwrite)
         except CommitWorkerGone as err:
@@ -396,12 +391,6 @@ class CommitEngine:
     def _write_chunks(self, payload: dict[int, dict[str, np.ndarray]], prefix: str = "") -> None:
         """Writes chunks of every array (:func:`~.fast_write.write_chunks`: the chunk files directly, for a local store)."""
         write_chunks(self._array, payload, self.mirror.chunk_rows, prefix, plans=self.plans)
-
-    def _write_journal(self, payload: dict[int, dict[str, np.ndarray]], meta: dict) -> None:
-        """Redo log for chunks that overwrite committed rows (ring wrap-around): see :mod:`.journal`."""
-        m = self.mirror
-        write_journal(self.group, self.arrays, payload, meta, schema=m.schema, size=m.max_dim0,
-                      inner_shape=m.inner_shape, chunk_rows=m.chunk_rows, write_chunks=self._write_chunks)
 
     def pending(self) -> bool:
         return bool(self.dirty or self.meta_dirty or self.inflight) or self.flush_done < self.flush_req
@@ -468,12 +457,15 @@ def worker_header(mirror: Any, path: str, snapshots: dict, meta: dict | None, ov
         "meta": meta,
     }
     if overwrite:
-        header["journal_arrays"] = [
-            [p, [mirror.max_dim0, *mirror.inner_shape, *spec["shape"]],
-             _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).str]
-            for p, spec in mirror.schema.items()
-        ]
+        header["journal"] = journal_specs(mirror)
     return header
+
+
+def journal_specs(mirror: Any) -> list:
+    """``[path, shape, numpy dtype str]`` of each column's journal array (``journal.commit``'s ``journal``)."""
+    return [[p, [mirror.max_dim0, *mirror.inner_shape, *spec["shape"]],
+             _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])).str]
+            for p, spec in mirror.schema.items()]
 
 
 def start_thread(target: Any, name: str) -> threading.Thread | None:

@@ -4,9 +4,12 @@ Zarr replaces a chunk file atomically, but one array at a time: a crash between
 two arrays of a ring wrapping around would leave rows whose columns come from
 two writes. So chunks that overwrite committed rows are written twice:
 
-1. their new contents to ``_journal/<array path>`` (:func:`write_journal`, with
-   the commit record they lead to, committed as the ``journal`` attribute);
+1. their new contents to ``_journal/<array path>``, with the commit record they
+   lead to, committed as the ``journal`` attribute;
 2. then in place, and the ``journal`` record is cleared.
+
+:func:`commit` is that protocol (and the plain one: chunks, then the record),
+the one implementation of both commit paths.
 
 A reopen (or ``robotmem repair``) finds a pending record and redoes step 2
 (:func:`replay_journal`); a reader that may not write applies the journalled
@@ -30,48 +33,58 @@ from typing import Any
 
 import numpy as np
 
-from . import _backend
-
-__all__ = ["journal_chunks", "replay_journal", "write_journal"]
+__all__ = ["commit", "journal_chunks", "replay_journal"]
 
 #: the folder of a pending commit's chunks (``_journal/<array path>``)
 PREFIX = "_journal/"
 
 
-def write_journal(group: Any, arrays: dict[str, Any], payload: dict[int, dict[str, np.ndarray]], meta: dict, *,
-                  schema: dict[str, dict], size: int, inner_shape: tuple[int, ...], chunk_rows: int,
-                  write_chunks: Callable[..., None]) -> None:
-    """Writes the redo log of ``payload`` (chunk id -> array path -> rows) and commits its record.
+def commit(group: Any, arrays: dict[str, Any], write_chunks: Callable[..., None],
+           payload: dict[int, dict[str, np.ndarray]], meta: dict | None, *, chunk_rows: int,
+           journal: list | None = None) -> None:
+    """The commit protocol, written once: the in-process engine (:mod:`.commit`) and the commit worker call it.
+
+    1. With ``journal`` (the chunks overwrite committed rows): the new contents go to
+       ``_journal/<path>`` first, and the ``journal`` record (the chunks, and the record ``meta``
+       they lead to) is committed: from here a crash is redone on the next open.
+    2. The chunks are written in place.
+    3. The record ``meta`` is committed in one attribute write (and the ``journal`` record cleared).
+
+    Without ``meta`` (complete chunks written ahead of their record) only step 2 runs: rows on disk
+    past the committed length are not read by anyone until a record names them.
 
     Args:
-        group: the store's Zarr group.
-        arrays (dict): the journal's open arrays by path (``_journal/...``); created
-            here (as large as the store: each chunk goes to its own offset) when absent.
-        payload (dict): the chunks' new contents.
-        meta (dict): the commit record the journalled chunks lead to.
+        group: the store's Zarr group (writable).
+        arrays (dict): the open arrays by path, kept by the caller; the journal's (``_journal/...``)
+            are created here, as large as the store (each chunk at its own offset), when absent.
+        write_chunks: ``write_chunks(payload, prefix="")``, the caller's chunk writer
+            (``fast_write.write_chunks`` on its arrays).
+        payload (dict): chunk id -> array path -> the chunk's rows.
+        meta (dict or None): the commit record, or ``None`` (chunks only).
 
     Keyword Args:
-        schema (dict): the store's columns ``{path: {"dtype", "shape"}}``.
-        size (int): the store's rows along the first dimension.
-        inner_shape (tuple): the item shape after the first dimension.
         chunk_rows (int): rows per chunk.
-        write_chunks: ``write_chunks(payload, prefix=...)``, the commit engine's chunk writer.
+        journal (list, optional): ``[path, shape, numpy dtype str]`` of every column's journal array,
+            when the chunks overwrite committed rows.
+
+    This module imports only NumPy: the commit worker loads it as a top-level module, without torch.
     """
-    for path, spec in schema.items():
-        jpath = PREFIX + path
-        shape = (size, *inner_shape, *spec["shape"])
-        if jpath not in arrays or arrays[jpath].shape != shape:
-            arrays[jpath] = group.create_array(
-                jpath,
-                shape=shape,
-                chunks=(chunk_rows, *shape[1:]),
-                dtype=_backend.numpy_dtype(_backend.torch_dtype(spec["dtype"])),
-                fill_value=0,
-                overwrite=True,
-            )
-    write_chunks(payload, prefix=PREFIX)
-    # the journal is complete once this record (with the state it leads to) is committed
-    group.update_attributes({"journal": {"chunks": sorted(payload), "meta": meta}})
+    if journal is not None:
+        for path, shape, dtype in journal:
+            jpath = PREFIX + path
+            arr = arrays.get(jpath)
+            if arr is None or list(arr.shape) != list(shape):
+                arrays[jpath] = group.create_array(jpath, shape=tuple(shape), chunks=(chunk_rows, *shape[1:]),
+                                                   dtype=dtype, fill_value=0, overwrite=True)
+        write_chunks(payload, prefix=PREFIX)
+        # the journal is complete once this record (with the state it leads to) is committed
+        group.update_attributes({"journal": {"chunks": sorted(payload), "meta": meta}})
+    write_chunks(payload)
+    if meta is not None or journal is not None:
+        update = dict(meta or {})
+        if journal is not None:
+            update["journal"] = None
+        group.update_attributes(update)
 
 
 def journal_chunks(group: Any, journal: dict) -> Iterator[tuple[str, slice, np.ndarray]]:

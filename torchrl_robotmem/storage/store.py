@@ -101,7 +101,7 @@ class MemoryStore:
                                                                     commit_process=self.commit_process) else None,
         )
         self.engine.handle = handle  # the worker gets a copy of its writer lock's descriptor
-        self.store_schema = StoreSchema(handle, self.mirror, self.engine.arrays, compressor=codec[0], level=codec[1])
+        self.schema = StoreSchema(handle, self.mirror, self.engine.arrays, compressor=codec[0], level=codec[1])
         self.sync_attrs(attrs)
         self.restored_writers = weakref.WeakSet()  # this session's state
 
@@ -166,7 +166,7 @@ class MemoryStore:
 
     def sync_attrs(self, attrs: dict) -> None:
         """Persistent bookkeeping, mirrored from the group attributes."""
-        self.store_schema.sync(attrs)
+        self.schema.sync(attrs)
         self.tags.sync(attrs)
         self.write_count = int(attrs.get("write_count", 0))
         self.cursor = int(attrs.get("cursor", 0))
@@ -211,7 +211,7 @@ class MemoryStore:
         """
         for name in plan.new_env_names:
             self.env_code(name, create=True)
-        self.store_schema.note(plan)
+        self.schema.note(plan)
         if not self.context_checked and plan.env is not None:
             self.context_checked = True
             advice = missing_context(plan.data, plan.env, self.handle.path, goal_conditioned=self.goal_conditioned)
@@ -249,18 +249,21 @@ class MemoryStore:
 
     # -- episodes --------------------------------------------------------------------------
 
-    def mark_truncated(self, rows: torch.Tensor, own_write: Callable, bump: Callable[[], None]) -> None:
-        """Sets ``("next", "done")`` and ``("next", "truncated")`` on flat ``rows`` (RAM, then disk), then ``bump``."""
-        with lifecycle.critical(), own_write(), self.engine.cv:
-            self.engine.mark_dirty(self.mirror.mark_done(rows), self.mirror.chunk_rows)
-        bump()
+    def mark_truncated(self, rows: torch.Tensor) -> None:
+        """Sets ``("next", "done")`` and ``("next", "truncated")`` on flat ``rows`` (RAM, then disk).
 
-    def close_episode_at(self, row: int, own_write: Callable, bump: Callable[[], None]) -> None:
+        Committed with the next commit (nothing is kicked here); the caller bumps TorchRL's mutation
+        revision (``ZarrStorage`` does, as for its own writes).
+        """
+        with lifecycle.critical(), self.engine.cv:
+            self.engine.mark_dirty(self.mirror.mark_done(rows), self.mirror.chunk_rows)
+
+    def close_episode_at(self, row: int) -> None:
         """Ends the open episode at ``row`` (see ``ZarrStorage.close_episode_at``)."""
         with self.engine.cv:
             self.tags.tagger.close_stream()
-        self.mark_truncated(torch.tensor([row]), own_write, bump)
-        self.engine.kick()  # (the revision bump happens inside mark_truncated)
+        self.mark_truncated(torch.tensor([row]))
+        self.engine.kick()
 
     def mark_rows_dirty(self, n0: int) -> None:
         """Commits the first ``n0`` rows again (a write that did not say which rows it touched)."""
@@ -269,14 +272,16 @@ class MemoryStore:
                 self.engine.mark_dirty(slice(0, n0), self.mirror.chunk_rows)
             self.engine.kick()
 
-    def close_open_episodes(self, length: int, full: bool, own_write: Callable, bump: Callable[[], None]) -> None:
-        """Marks the last row of every episode the previous run left open as done/truncated."""
+    def close_open_episodes(self, length: int, full: bool) -> bool:
+        """Marks the last row of every episode the previous run left open as done/truncated; whether there was one."""
         if self.rows_sealed:  # the rows the writer that sealed them found open at its close
             rows = torch.tensor(self.mirror.rows.open_ends, dtype=torch.long)
         else:
             rows = self.mirror.open_episode_ends(length, self.cursor, full=full)
-        if rows.numel():
-            self.mark_truncated(rows, own_write, bump)
+        if not rows.numel():
+            return False
+        self.mark_truncated(rows)
+        return True
 
     # -- durability ------------------------------------------------------------------------
 
@@ -343,14 +348,14 @@ class MemoryStore:
     def column(self, index, n0: int | None):
         """A column (or columns) of the first ``n0`` rows (``None``: all of them), as ``LazyTensorStorage`` gives it."""
         rows = self.mirror.views if n0 is None else self.mirror.views[:n0]
-        if self.store_schema.constants:  # a non-tensor entry is a column too
-            rows = with_constants(rows, self.store_schema.constants)
+        if self.schema.constants:  # a non-tensor entry is a column too
+            rows = with_constants(rows, self.schema.constants)
         return rows[index]
 
     def summary(self, initialized: bool, n: int, max_size: int) -> dict[str, Any]:
         """Rows, episodes, runs, success rates, env names and size on disk (see :func:`.summary.summarize`)."""
         return summarize(self.mirror if initialized else None, n=n, path=self.handle.path, max_size=max_size,
-                         env_names=tuple(self.tags.env_names), constants=self.store_schema.constants,
+                         env_names=tuple(self.tags.env_names), constants=self.schema.constants,
                          local_dir=self.handle.local_dir)
 
     # -- a reader's refresh, a state dict --------------------------------------------------
@@ -358,7 +363,7 @@ class MemoryStore:
     def snapshot(self) -> Callable[[], None]:
         """Saves what ``reopen`` changes; returns the function that puts it back."""
         saved = dict(vars(self))
-        restore = loader.snapshot(self.handle, self.mirror, self.tags, self.store_schema, self.engine)
+        restore = loader.snapshot(self.handle, self.mirror, self.tags, self.schema, self.engine)
 
         def restore_all() -> None:
             vars(self).update(saved)
@@ -383,7 +388,7 @@ class MemoryStore:
         tags = self.mirror.views.select(*TAG_KEYS, strict=False).state_dict() if initialized else {}
         return {"store": path if isinstance(path, str) else None, "write_count": self.write_count,
                 "cursor": self.cursor, "env_names": list(self.tags.env_names), "ndim": ndim, "tags": tags,
-                **self.store_schema.state()}
+                **self.schema.state()}
 
     def load_position(self, meta: dict, rows, n0: int, tagged: bool) -> None:
         """The writer position of ``n0`` loaded rows (``meta``: the source's bookkeeping, if any)."""

@@ -125,7 +125,6 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         record = lambda: store.meta_snapshot(len(self), last_index(self._last_cursor))  # noqa: E731
         store.build(stored_max, ndim=self.ndim, device=self.device, length=self.__len__, record=record,
                     commit_interval=commit_interval, background=background, codec=codec, attrs=attrs)
-        self._mirror, self._tags, self._engine, self._store_schema = store.mirror, store.tags, store.engine, store.store_schema
         self._own_writes = 0  # depth of this class's own writes (see _bump_mutation_revision)
         if max_size is not None and int(max_size) != stored_max:
             loader.grow_arrays(handle, self._mirror, self._engine, int(max_size), write_count=store.write_count)
@@ -138,7 +137,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._mirror.schema is not None:  # committed with the next commit, as any write (a crash before
                 # it leaves them open, and the next open closes them again)
-                store.close_open_episodes(len(self), self._is_full, self._own_write, self._bump_own)
+                if store.close_open_episodes(len(self), self._is_full):
+                    self._bump_own()
 
     def _load_rows(self, attrs: dict) -> None:
         record = attrs
@@ -162,16 +162,34 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._store.note_stored(n0)
         self._bump_own()
 
+    # the engine's parts, owned by the MemoryStore (read here, never copied: a reopen rebuilds them there)
+    @property
+    def _mirror(self):
+        return self._store.mirror
+
+    @property
+    def _tags(self):
+        return self._store.tags
+
+    @property
+    def _engine(self):
+        return self._store.engine
+
+    @property
+    def _schema(self):
+        return self._store.schema
+
     def _allocate(self) -> None:
         """(Re)builds the packed RAM mirror for the current schema, keeping existing rows."""
         self._mirror.allocate(keep=self.initialized)
         # what TorchRL sees as the storage: the data as the user wrote it (views, a column, a tensorclass / pytree)
-        self._storage = self._store_schema.as_stored(self._mirror.views)
+        self._storage = self._schema.as_stored(self._mirror.views)
         self.__dict__.pop("_total_shape_value", None)  # TorchRL caches the storage shape
 
     def close_episode_at(self, row: int) -> None:
         """Ends the open episode at ``row`` (done/truncated), for writers that learn of a boundary late."""
-        self._store.close_episode_at(row, self._own_write, self._bump_own)
+        self._store.close_episode_at(row)
+        self._bump_own()
 
     # -- properties --------------------------------------------------------------------------
 
@@ -279,7 +297,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         """``set``, for rows of any kind written as TensorDicts (``as_kind``) and rows that keep their tags."""
         try:
             self._store.check_writable()
-            view = StoreView.of(self.path, self.ndim, self.initialized, self._store_schema, self._tags)
+            view = StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags)
             plan = plan_write(view, cursor, data, set_cursor=set_cursor, as_kind=as_kind, keep_tags=keep_tags)
         except Exception:
             if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
@@ -296,7 +314,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             elif new_paths:
                 self._evolve_schema(data, new_paths, plan.single)
             if new_constants:
-                self._engine.update_attrs(self._store_schema.add_constants(new_constants))
+                self._engine.update_attrs(self._schema.add_constants(new_constants))
             if self._store.unbounded:
                 self._fit(cursor)
             rows = cursor_rows(cursor, self._mirror.max_dim0)
@@ -352,10 +370,10 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def check_schema(self, data: TensorDictBase) -> None:
         """Raises, naming the key, unless ``data`` (batch ``[N]``) could be written (tags ignored; nothing is written)."""
-        check_rows(StoreView.of(self.path, self.ndim, self.initialized, self._store_schema, self._tags), data)
+        check_rows(StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags), data)
 
     def _init_schema(self, data: TensorDictBase, single: bool) -> None:
-        record = self._store_schema.create(data, single)
+        record = self._schema.create(data, single)
         if not self._store.unbounded:
             self.max_size = self._mirror.max_size  # as TorchRL rounds it for ndim > 1
         self._allocate()
@@ -365,7 +383,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
     def _evolve_schema(self, data: TensorDictBase, new_paths: list[str], single: bool) -> None:
         """Adds columns for keys the store did not hold yet (older rows read zeros)."""
         self.flush()  # committed rows first: the new arrays start from a clean state
-        self._store_schema.add_columns(data, new_paths, single, filled=self._len_along_dim0)
+        self._schema.add_columns(data, new_paths, single, filled=self._len_along_dim0)
         with self._engine.cv:
             self._allocate()
         self._engine.update_attrs({"schema": self._mirror.schema})
@@ -374,7 +392,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
     # Kept for LazyTensorStorage: allocation happens in _init_schema.
     def _init(self, data) -> None:
         if not self.initialized:
-            kind = self._store_schema.kind = DataKind.of(data)
+            kind = self._schema.kind = DataKind.of(data)
             self._init_schema(kind.to_tensordict(data, self.ndim - 1), True)
 
     def _empty(self) -> None:
@@ -395,7 +413,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         if isinstance(index, list):
             index = torch.as_tensor(index)
         packed = self._mirror.packed if self._is_full else self._mirror.packed[: self._len_along_dim0]
-        return self._store_schema.rows_out(self._mirror.layout.views(packed[index], self._hidden))
+        return self._schema.rows_out(self._mirror.layout.views(packed[index], self._hidden))
 
     # -- durability ----------------------------------------------------------------------------
 
@@ -465,7 +483,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._empty()
         rows, n0, tagged = state_rows(rows, state_dict, ndim=self.ndim, env_code=lambda x: self.env_code(x, create=True))
         if rows is not None:
-            kind = source_kind(state_dict, self._store_schema.kind, has_schema=self._mirror.schema is not None)
+            kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
             # written as a TensorDict, read back as the source's kind (or the store's)
             self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tagged)
             self._store.load_position(meta, rows, n0, tagged)
