@@ -144,14 +144,14 @@ def part_recall(path: str, exact: int, seed: int) -> dict:
     from torchrl_robotmem.storage import ZarrStorage
 
     storage = ZarrStorage(path, read_only=True)
-    before = rss_mb()["VmRSS"]
+    before = rss_mb()
     index = GoalIndex(storage)
     c0, t0 = time.process_time(), time.perf_counter()
     index.refresh()
     build_s, build_cpu = time.perf_counter() - t0, time.process_time() - c0
     built = rss_mb()
-    goals = storage._storage["next", "achieved_goal"]  # the mapped column (what the index snapshots)
-    n = goals.shape[0]
+    n = len(storage)
+    goals = storage._storage["next", "achieved_goal"][:n]  # the mapped column (what the index snapshots)
     rng = np.random.default_rng(seed)
     queries = goals[torch.from_numpy(rng.integers(0, n, 256))].numpy().astype(np.float64)
     queries += rng.normal(size=queries.shape) * 0.01
@@ -183,7 +183,8 @@ def part_recall(path: str, exact: int, seed: int) -> dict:
     got_d = d[:exact].numpy() ** 2 if bool((d >= 0).all()) else None
     same = [bool(set(p[i].tolist()) == set(best_p[i].tolist())
                  or np.allclose(np.sort(got_d[i]), np.sort(best_d[i]), rtol=1e-4)) for i in range(exact)]
-    return {"rows": n, "build_s": build_s, "build_cpu_s": build_cpu, "index_rss_mb": built["VmRSS"] - before,
+    return {"rows": n, "build_s": build_s, "build_cpu_s": build_cpu, "index_rss_mb": built["VmRSS"] - before["VmRSS"],
+            "index_anon_mb": built["RssAnon"] - before["RssAnon"], "peak_rss_mb": built["VmHWM"],
             "index_nbytes_mb": index.nbytes() / 2**20 if hasattr(index, "nbytes") else None,
             "query1_median_ms": 1e3 * one[len(one) // 2], "query256_ms": 1e3 * batch_s,
             "exact_checked": exact, "exact_equal": sum(same), "brute_force_scan_s": scan_s}
@@ -212,7 +213,7 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=100_000_000)
     ap.add_argument("--batch", type=int, default=10_000, help="rows per extend")
     ap.add_argument("--capacity", action="store_true", help="declare max_size=rows (default: a memory that grows)")
-    ap.add_argument("--scratch", required=True, help="directory for the store (kept with --keep)")
+    ap.add_argument("--scratch", help="directory for the store (required; kept with --keep)")
     ap.add_argument("--keep", action="store_true", help="keep the store; reuse it if it is there (no write)")
     ap.add_argument("--cgroup-fraction", type=float, default=0.25)
     ap.add_argument("--exact", type=int, default=8, help="queries checked against a brute-force scan")
@@ -224,6 +225,8 @@ def main() -> None:
     if a.part:
         print(json.dumps(PARTS[a.part](*json.loads(a.args))))
         return
+    if not a.scratch:
+        ap.error("--scratch DIR is required (the store is written there)")
     path = str(Path(a.scratch) / "memory.zarr")
     out = Path(a.out or ROOT / "bench_results" / f"scale_{a.rows}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -240,6 +243,8 @@ def main() -> None:
     if not (a.keep and os.path.isdir(path)):
         os.makedirs(a.scratch, exist_ok=True)
         save("write", child("write", path, a.rows, a.batch, a.capacity, a.seed))
+        if "failed" in res["write"]:
+            sys.exit(f"the write failed: {res['write']}")
     rows_bytes = disk_bytes(Path(path) / "_rows")
     save("disk", {"store_bytes": disk_bytes(Path(path)), "row_file_bytes": rows_bytes,
                   "chunk_bytes": disk_bytes(Path(path)) - rows_bytes})
