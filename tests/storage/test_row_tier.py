@@ -5,6 +5,7 @@ Real stores under ``tmp_path``; crash and cgroup cases are in ``tests/reliabilit
 """
 from __future__ import annotations
 
+import gc
 import json
 import os
 import shutil
@@ -272,3 +273,35 @@ def test_a_sealed_writer_still_refuses_an_array_whose_metadata_disagrees_with_th
         ZarrStorage(path)
     with ZarrStorage(path, read_only=True) as st:  # a sealed reader opens no array: it serves the sealed rows
         assert st.row_file["sealed"] is True and torch.equal(st["obs"], _rows(0, 2 * CHUNK)["obs"])
+
+
+def _row_file_flags(path) -> list[set[str]]:
+    """The ``VmFlags`` of this process's mappings of ``path`` (``/proc/self/smaps``)."""
+    out, current = [], None
+    with open("/proc/self/smaps") as f:
+        for line in f:
+            head = line.split()
+            if len(head) >= 6 and "-" in head[0] and not line.startswith(("VmFlags", " ")):
+                current = os.path.realpath(head[-1]) == os.path.realpath(path)
+            elif line.startswith("VmFlags:") and current:
+                out.append(set(line.split()[1:]))
+    return out
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/smaps"), reason="reads the kernel's VmFlags of each mapping")
+@pytest.mark.parametrize("read_only", [True, False])
+def test_the_row_file_is_mapped_for_samples_and_scans_turn_readahead_on(tmp_path, read_only):
+    """``rr`` (MADV_RANDOM: a fault reads only its page) outside a scan; the kernel's readahead inside one."""
+    path = str(tmp_path / "m.zarr")
+    _write(path, 4 * CHUNK)
+    rows_bin = os.path.join(path, ROWS_DIR, "rows.bin")
+    gc.collect()  # the closed writer's views (a reference cycle) go, and the mapping they kept with them
+    with ZarrStorage(path, read_only=read_only) as st:
+        st.get(torch.arange(3))  # a sample: the mapping is in use
+        flags = _row_file_flags(rows_bin)
+        assert flags and all("rr" in f for f in flags), flags
+        with st.scanning():
+            with st.scanning():  # nested: readahead stays on until the outer scan ends
+                pass
+            assert all("rr" not in f for f in _row_file_flags(rows_bin))
+        assert all("rr" in f for f in _row_file_flags(rows_bin))

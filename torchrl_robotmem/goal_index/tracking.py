@@ -26,7 +26,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data.replay_buffers.storages import Storage, TensorStorage
 
-from torchrl_robotmem.storage.columns import has_rows, read_column, read_rows
+from torchrl_robotmem.storage.columns import has_rows, read_column, read_rows, scanning
 
 __all__ = ["ColumnTracker", "as_tensor_storage", "live_column", "stored_rows"]
 
@@ -263,15 +263,16 @@ class ColumnTracker:
             self._tracked.setdefault(key, what)
             self._advice[key] = advice
             return
-        try:
-            col = _numpy(read_column(self.storage, key, self.n))
-        except KeyError as err:
-            raise _missing(key, what, advice, err) from None
-        if int(np.prod(col.shape[1:], dtype=np.int64)) != 1:
-            raise ValueError(
-                f"{what} needs one value per row in {_key_str(key)}, got shape {tuple(col.shape)}."
-            )
-        self._snap[key] = _grow(None, col, self.n, self.capacity)
+        with scanning(self.storage):  # every row's value is read: readahead on
+            try:
+                col = _numpy(read_column(self.storage, key, self.n))
+            except KeyError as err:
+                raise _missing(key, what, advice, err) from None
+            if int(np.prod(col.shape[1:], dtype=np.int64)) != 1:
+                raise ValueError(
+                    f"{what} needs one value per row in {_key_str(key)}, got shape {tuple(col.shape)}."
+                )
+            self._snap[key] = _grow(None, col, self.n, self.capacity)
         self._tracked[key] = what
         self._advice[key] = advice
 
@@ -291,7 +292,11 @@ class ColumnTracker:
                 self._reset()
             self._rev = rev
             return
-        n = len(st)
+        with scanning(st):  # the snapshot reads (and compares) every row's columns: readahead on
+            self._sync_rows(st, len(st), rev, check_goal_dim)
+
+    def _sync_rows(self, st, n: int, rev, check_goal_dim) -> None:
+        """``sync`` of a storage that holds rows: the snapshots brought to its first ``n`` rows."""
         cols = {self.goal_key: _numpy(read_column(st, self.goal_key, n))}
         for key, what in list(self._tracked.items()):
             try:

@@ -7,13 +7,14 @@ gathers whole rows). ``LazyTensorStorage``, ``LazyMemmapStorage`` and
 """
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-__all__ = ["has_rows", "read_column", "read_rows"]
+__all__ = ["has_rows", "read_column", "read_rows", "scanning"]
 
 
 def _key_str(key: NestedKey) -> str:
@@ -44,6 +45,18 @@ def read_column(storage: Any, key: NestedKey, n: int | None = None) -> torch.Ten
         keys = sorted(_key_str(k) for k in data.keys(True, True)) if isinstance(data, TensorDictBase) else []
         raise KeyError(f"the storage has no column {_key_str(key)}; available keys: {', '.join(keys)}.")
     return col if n is None else col[:n]
+
+
+def scanning(storage: Any):
+    """The storage's context for reading whole columns (``ZarrStorage.scanning``), else one that does nothing.
+
+    Example:
+        >>> from torchrl.data import LazyTensorStorage
+        >>> with scanning(LazyTensorStorage(10)):
+        ...     pass
+    """
+    scan = getattr(storage, "scanning", None)
+    return scan() if callable(scan) else contextlib.nullcontext()
 
 
 def read_rows(storage: Any, rows: torch.Tensor) -> TensorDictBase:

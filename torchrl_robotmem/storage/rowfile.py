@@ -188,6 +188,7 @@ class RowFile:
         self.retired: int | None = None  # the file a new layout moved from (closed at release)
         self.made_folder = False  # this handle made ``_rows/`` (an open that fails removes it again)
         self.in_memory = False  # no room for the file: the rows live in private pages (a growth copies them)
+        self.scans = 0  # scans under way (readahead on while > 0, see ``scanning``)
 
     # -- choosing the file ---------------------------------------------------------------------
 
@@ -254,6 +255,28 @@ class RowFile:
         if self.name == os.path.join(self.folder, ROWS_FILE):
             self._unseal()
         self._remove_stale()
+
+    @contextlib.contextmanager
+    def scanning(self):
+        """Readahead on while a column is read across all rows (a goal index's snapshot, a summary).
+
+        The mapping is advised ``MADV_RANDOM`` otherwise: a sample touches rows anywhere, so a fault
+        reads its own page rather than the 128 KB around it, which a memory-limited process would
+        have to reclaim again at once (at 100M rows in a cgroup of a quarter of the rows: 28 s for an
+        open and 1,000 cold samples, against not done in 300 s with readahead). A scan reads every page
+        in order, where readahead is what makes it fast; nested and concurrent scans count.
+        """
+        self.scans += 1
+        if self.scans == 1:
+            for m in self.maps:
+                _advise(m, scan=True)
+        try:
+            yield
+        finally:
+            self.scans -= 1
+            if self.scans == 0:
+                for m in self.maps:
+                    _advise(m, scan=False)
 
     def discard(self) -> None:
         """An open that failed: deletes the file of its own this open made, releases the rest."""
@@ -405,6 +428,7 @@ class RowFile:
                 done += got
         else:
             m = mmap.mmap(self.fd, max(nbytes, 1), access=access)
+            _advise(m, scan=self.scans > 0)
         self.maps = [*self.maps[-1:], m]  # older mappings stay alive through the views that use them
         return torch.frombuffer(m, dtype=torch.uint8, count=nbytes).view(*shape, int(row_bytes))
 
@@ -441,3 +465,11 @@ class RowFile:
             >>> rows.release()
         """
         return {"file": self.name, "sealed": self.sealed, "shared": self.copy_on_write}
+
+
+def _advise(m: mmap.mmap, *, scan: bool) -> None:
+    """``MADV_NORMAL`` (the kernel's readahead) for a scan, else ``MADV_RANDOM``; nothing where unsupported."""
+    advice = getattr(mmap, "MADV_NORMAL" if scan else "MADV_RANDOM", None)
+    if advice is not None:
+        with contextlib.suppress(OSError, ValueError):  # a closed mapping (a view outlived it), or no support
+            m.madvise(advice)

@@ -8,6 +8,7 @@ left open. ``docs/storage.md`` ("Map of storage/") says which part does what.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import warnings
@@ -264,6 +265,10 @@ class MemoryStore:
             self.tags.tagger.close_stream()
         self.mark_truncated(torch.tensor([row]))
         self.engine.kick()
+
+    def scanning(self):
+        """A context under which reads scan whole columns (readahead on: ``RowFile.scanning``)."""
+        return self.rows.scanning() if self.rows is not None else contextlib.nullcontext()
 
     def mark_rows_dirty(self, n0: int) -> None:
         """Commits the first ``n0`` rows again (a write that did not say which rows it touched)."""

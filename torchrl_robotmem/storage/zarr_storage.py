@@ -417,6 +417,26 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     # -- durability ----------------------------------------------------------------------------
 
+    def scanning(self):
+        """A context for reads that scan whole columns: the row file's readahead is on inside it.
+
+        Outside it the row file is mapped for samples (no readahead: a fault reads only its page),
+        which keeps a memory larger than RAM sampleable under a small memory limit; a column read
+        across every row (a goal index's snapshot) is many times faster with readahead.
+        ``storage.columns.read_column``'s callers use it (:func:`~.columns.scanning`).
+
+        Example:
+            >>> import tempfile, torch
+            >>> from tensordict import TensorDict
+            >>> st = ZarrStorage(tempfile.mkdtemp() + "/m.zarr", 100, goal_conditioned=False)
+            >>> st.set(range(10), TensorDict({"obs": torch.arange(10.0)}, [10]))
+            >>> with st.scanning():
+            ...     total = float(st._storage["obs"][: len(st)].sum())
+            >>> total
+            45.0
+        """
+        return self._store.scanning()
+
     def flush(self) -> None:
         """Blocks until every row written so far is durable and committed."""
         self._store.flush()
