@@ -137,20 +137,23 @@ def unbounded_grow_kill(path, conn, flush_at, last, kill_at, **_):
 
 def tail_writer(path, conn, seed, total, **_):
     """Test 4: grows a memory without a declared capacity to ``total`` rows; after each ``flush()``
-    sends the rows flushed; closes and sends ``"closed"``."""
+    sends the rows flushed and waits for the reader's go (it has refreshed: it sees every step, by
+    construction); flushes at least once at every capacity; closes and sends ``"closed"``."""
     from torchrl_robotmem import ZarrStorage
 
     rng = random.Random(seed)
     st = ZarrStorage(path, chunk_rows=64, commit_interval=0.05, env=ENV)
     rb = _buffer(st)
-    w = 0
+    w, told = 0, None
     while w < total:
         b = min(rng.randint(50, 700), total - w)
         rb.extend(make_rows(torch.arange(w, w + b)))
         w += b
-        if rng.random() < 0.7 or w == total:
+        if rng.random() < 0.7 or w == total or st.capacity != told:
             st.flush()
-            conn.send({"flushed": w, "capacity": st.capacity})
+            told = st.capacity
+            conn.send({"flushed": w, "capacity": told})
+            conn.recv()  # the reader refreshed
     st.close()
     conn.send({"closed": w})
 

@@ -68,10 +68,13 @@ def _seed() -> int:
     return seed_from_env("ROBOTMEM_ROW_TIER_SEED")
 
 
-def _start(tmp_path: Path, scenario: str, **kwargs):
-    """Starts a child running ``scenario``; returns ``(process, connection, err_file)``."""
+def _start(tmp_path: Path, scenario: str, *, duplex: bool = False, **kwargs):
+    """Starts a child running ``scenario``; returns ``(process, connection, err_file)``.
+
+    ``duplex``: the child also receives on its connection (a scenario that waits for the test).
+    """
     ctx = _gen.writer_context()
-    ours, theirs = ctx.Pipe(duplex=False)
+    ours, theirs = ctx.Pipe(duplex=duplex)
     err = tmp_path / f"{scenario}.err"
     args = dict(scenario=scenario, err_file=str(err), conn=theirs, **kwargs)
     p = ctx.Process(target=runpy.run_path, args=(CHILD,),
@@ -310,7 +313,7 @@ def test_reader_tails_a_growing_memory(tmp_path):
     seed = _seed()
     print(f"row tier tailing: ROBOTMEM_ROW_TIER_SEED={seed}")
     total = 6000  # the capacity grows 1024 -> 2048 -> 4096 -> 8192
-    p, conn, err = _start(tmp_path, "tail_writer", path=str(path), seed=seed, total=total)
+    p, conn, err = _start(tmp_path, "tail_writer", duplex=True, path=str(path), seed=seed, total=total)
     deadline = time.monotonic() + CHILD_DEADLINE
     reader, checks, capacities = None, 0, set()
     try:
@@ -331,6 +334,7 @@ def test_reader_tails_a_growing_memory(tmp_path):
             if "closed" in m:
                 assert n == total
                 break
+            conn.send("go")  # the writer waits for it: every flush is refreshed to before it goes on
         p.join(60)
         assert p.exitcode == 0, _error(err)
         assert len(capacities) >= 3, f"the reader saw the memory grow only to {sorted(capacities)} (seed {seed})"

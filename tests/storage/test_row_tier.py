@@ -305,3 +305,29 @@ def test_the_row_file_is_mapped_for_samples_and_scans_turn_readahead_on(tmp_path
                 pass
             assert all("rr" not in f for f in _row_file_flags(rows_bin))
         assert all("rr" in f for f in _row_file_flags(rows_bin))
+
+
+@pytest.mark.parametrize("max_size", [None, 300])  # a memory that grows, and a ring that wraps
+def test_a_clean_close_reads_only_the_appended_rows_and_seals_the_episodes_a_full_scan_finds_open(tmp_path, max_size):
+    """The seal's open episode ends, read from this session's rows alone, equal a scan of every row."""
+    path = str(tmp_path / "m.zarr")
+    gen = torch.Generator().manual_seed(0)
+    written = 0
+    for session in range(4):
+        st = ZarrStorage(path, max_size, chunk_rows=CHUNK, goal_conditioned=False)
+        for _ in range(3):  # batches of random length whose last episode is often left open
+            n = int(torch.randint(1, 90, (1,), generator=gen))
+            rows = _rows(written, written + n)
+            rows["next", "done"] = torch.rand(n, 1, generator=gen) < 0.1
+            st.set(torch.arange(written, written + n) % (max_size or 10**9), rows)
+            written += n
+        st.close()
+        with ZarrStorage(path, read_only=True) as reader:
+            store = reader._store
+            n = len(reader)
+            full = n >= store.mirror.max_size
+            scan = store.mirror.open_episode_ends(n, store.cursor, full=full).tolist()
+        assert sorted(_seal(path)["open_ends"]) == sorted(scan), f"session {session}"
+    with ZarrStorage(path, max_size) as st:  # a writer that appends nothing seals no open end
+        pass
+    assert _seal(path)["open_ends"] == []

@@ -208,14 +208,22 @@ class RamMirror:
                 (col.reshape(-1, *col.shape[self.ndim:]) if self.ndim > 1 else col)[rows] = True
         return torch.div(rows, self.inner_numel, rounding_mode="floor")
 
-    def open_episode_ends(self, n: int, cursor: int, *, full: bool) -> torch.Tensor:
+    def open_episode_ends(self, n: int, cursor: int, *, full: bool, newest: int | None = None) -> torch.Tensor:
         """The last row of every episode among the first ``n`` transitions that no done ends.
 
         ``cursor`` is the writer's position along the first dimension; ``full`` whether
         the buffer has wrapped around. Empty without rows, a done column or episode tags.
+        ``newest``: only the ``newest`` rows written last (before ``cursor``) can end an open
+        episode (a writer whose open closed every earlier one): only those are read (``ndim=1``).
         """
-        if n == 0 or DONE_KEY not in self.views.keys(True, True) or "episode" not in self.schema:
+        if n == 0 or DONE_KEY not in self.views.keys(True, True) or "episode" not in self.schema or newest == 0:
             return torch.zeros(0, dtype=torch.long)
+        if newest is not None and newest < n and self.ndim == 1:
+            pos = torch.arange(cursor - newest, cursor, dtype=torch.long)
+            pos = pos % self.max_dim0 if full else pos  # write order (a full ring wraps at its size)
+            run, episode = (self.lead(self.views.get(k)[pos]).reshape(newest).cpu() for k in ("run", "episode"))
+            done = self.views.get(DONE_KEY)[pos].reshape(newest, -1).any(-1).cpu()
+            return pos[open_episode_ends(run, episode, done, cursor=0, full=False)]
         flat = {k: v.cpu() for k, v in self.flat_columns(("run", "episode", DONE_KEY), n).items()}
         done = flat[DONE_KEY].reshape(n, -1).any(-1)
         return open_episode_ends(flat["run"], flat["episode"], done, cursor=cursor * self.inner_numel, full=full)

@@ -58,6 +58,7 @@ class MemoryStore:
         self.on_damage = on_damage
         self.commit_process = commit_process
         self.write_count = 0  # the writer's position: its count and its next row
+        self.appended = 0  # rows this handle appended since its open (None: unknown, a reset or a loaded state)
         self.cursor = 0
         self.unbounded = False  # a memory without a declared capacity (it grows; no ring)
         self.restored_writers: weakref.WeakSet | None = None  # set once the store is open
@@ -142,7 +143,10 @@ class MemoryStore:
         if rows is None or self.read_only or self.mirror.schema is None or self.mirror.packed is None:
             return
         n = int(self.mirror.length())
-        ends = self.mirror.open_episode_ends(n, self.cursor, full=n >= self.mirror.max_size)
+        # the open closed every episode it found open: only the rows appended since can end one (their
+        # count, not the memory's size, is what this reads; a writer that appended nothing reads none)
+        with self.scanning():
+            ends = self.mirror.open_episode_ends(n, self.cursor, full=n >= self.mirror.max_size, newest=self.appended)
         record = _backend.open_group(self.handle.store, read_only=True).attrs.asdict()
         rows.seal(record, layout=self.mirror.file_layout(), open_ends=ends.tolist())
 
@@ -225,12 +229,15 @@ class MemoryStore:
     def advance(self, n: int, next_row: int) -> None:
         """The writer wrote ``n`` rows; its next row is ``next_row`` (wrapping around)."""
         self.write_count += n
+        if self.appended is not None:
+            self.appended += n
         self.cursor = next_row if self.unbounded else next_row % self.mirror.max_dim0
 
     def reset(self) -> None:
         """An emptied store: the writer starts over (as TorchRL's writer restarts its count)."""
         self.cursor = 0
         self.write_count = 0
+        self.appended = None
         self.tags.tagger.reset()
         self.engine.mark_meta_dirty()
 
@@ -399,6 +406,7 @@ class MemoryStore:
         """The writer position of ``n0`` loaded rows (``meta``: the source's bookkeeping, if any)."""
         self.cursor = int(meta.get("cursor", n0 % self.mirror.max_dim0)) % self.mirror.max_dim0
         self.write_count = int(meta.get("write_count", n0))
+        self.appended = None
         if tagged:
             self.tags.note_stored(rows.get("episode").max(), rows.get("run").max())
         with self.engine.cv:
