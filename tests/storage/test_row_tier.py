@@ -8,6 +8,7 @@ from __future__ import annotations
 import gc
 import json
 import os
+import re
 import shutil
 
 import pytest
@@ -277,14 +278,14 @@ def test_a_sealed_writer_still_refuses_an_array_whose_metadata_disagrees_with_th
 
 def _row_file_flags(path) -> list[set[str]]:
     """The ``VmFlags`` of this process's mappings of ``path`` (``/proc/self/smaps``)."""
-    out, current = [], None
+    out, current, target = [], False, os.path.realpath(path)
     with open("/proc/self/smaps") as f:
         for line in f:
             head = line.split()
-            if len(head) >= 6 and "-" in head[0] and not line.startswith(("VmFlags", " ")):
-                current = os.path.realpath(head[-1]) == os.path.realpath(path)
+            if re.match(r"[0-9a-f]+-[0-9a-f]+ ", line):  # a mapping's header (an anonymous one names no file)
+                current = len(head) >= 6 and os.path.realpath(" ".join(head[5:])) == target
             elif line.startswith("VmFlags:") and current:
-                out.append(set(line.split()[1:]))
+                out.append(set(head[1:]))
     return out
 
 
