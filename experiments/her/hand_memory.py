@@ -36,11 +36,13 @@ import gymnasium as gym
 import gymnasium_robotics
 import numpy as np
 import torch
+from tensordict import TensorDict
 from torch import nn
+from torchrl.data import TensorDictReplayBuffer
 
 from experiments.prior_variants.hindsight import numbered_episodes
 from recipes.her.tools.compare import load_run
-from torchrl_robotmem import ZarrStorage, recall
+from torchrl_robotmem import GoalProposer, ZarrStorage, recall
 
 ENV = "HandReach-v3"
 EVAL_SEED = 10_000  # evaluation goals: reset(seed=EVAL_SEED + i)
@@ -121,13 +123,19 @@ def fit(model: InverseModel, opt, data: dict[str, torch.Tensor], horizon: int, s
     return float(loss.detach())
 
 
-def rollout(env, model: InverseModel, seed: int, sigma: float, rng: np.random.Generator) -> tuple[dict, bool]:
-    """One episode with ``model`` (plus N(0, sigma^2) action noise); its rows and whether it succeeded."""
+def rollout(env, model: InverseModel, seed: int, sigma: float, rng: np.random.Generator,
+            goal: torch.Tensor | None = None) -> tuple[dict, bool]:
+    """One episode with ``model`` (plus N(0, sigma^2) action noise); its rows and whether it succeeded.
+
+    ``goal``: the goal the episode pursues instead of the env's own (a proposed one); success is then
+    the env's (its own goal), which a collection episode does not use.
+    """
     o, _ = env.reset(seed=seed)
     obs, act, ag = [], [], []
     for _ in range(50):
+        pursued = torch.as_tensor(o["desired_goal"]).float() if goal is None else goal
         with torch.no_grad():
-            a = model(torch.as_tensor(o["observation"]).float(), torch.as_tensor(o["desired_goal"]).float()).numpy()
+            a = model(torch.as_tensor(o["observation"]).float(), pursued).numpy()
         if sigma:
             a = np.clip(a + sigma * rng.standard_normal(a.shape), -1.0, 1.0)
         obs.append(o["observation"])
@@ -139,11 +147,29 @@ def rollout(env, model: InverseModel, seed: int, sigma: float, rng: np.random.Ge
     return rows, bool(info["is_success"])
 
 
+def store_rows(memory: TensorDictReplayBuffer, rows: dict[str, torch.Tensor]) -> None:
+    """Append rows (``obs``, ``act``, ``ag``, ``ep``) to a memory :func:`read_rows` reads back."""
+    memory.extend(TensorDict({"observation": rows["obs"], "action": rows["act"],
+                              ("next", "achieved_goal"): rows["ag"], ("collector", "traj_ids"): rows["ep"]},
+                             batch_size=[rows["obs"].shape[0]]))
+
+
 def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, seed: int, log,
-         episodes: int = 100) -> list[dict]:
+         episodes: int = 100, memory_out: str | None = None, propose_rate: float = 0.0, stop_at: float | None = None,
+         ) -> list[dict]:
     """Clone, then ``rounds`` of: 100 noisy episodes with the clone, added to the data, cloned further.
 
     Each clone is evaluated on ``episodes`` deterministic episodes (the goals of :func:`eval_goals`).
+
+    Args:
+        memory_out: a new memory (:class:`ZarrStorage`, no capacity) that holds every row the rounds
+            learn from: the starting memories' rows, then each round's episodes as they are collected;
+            a second run reads it (``gcsl memory_out ...``).
+        propose_rate: the probability that a collection episode pursues a goal a
+            :class:`~torchrl_robotmem.GoalProposer` over ``memory_out`` proposes (the stored achieved goal
+            of lowest density among 100 candidates, MEGA) instead of the env's own; ``0`` (the control):
+            every episode pursues the env's goal. Evaluation always uses the env's goals.
+        stop_at: stop after the first evaluation at or above this success (a second run: frames it needed).
     """
     torch.manual_seed(seed)
     gen, rng = torch.Generator().manual_seed(seed), np.random.default_rng(seed)
@@ -151,22 +177,44 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
     model = InverseModel(data)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     env = gym.make(ENV)
+    memory = proposer = None
+    if memory_out is not None:
+        memory = TensorDictReplayBuffer(storage=ZarrStorage(memory_out, env=ENV, goal_conditioned=False))
+        store_rows(memory, data)
+    if propose_rate:
+        if memory is None:
+            raise ValueError("propose_rate > 0 proposes from memory_out: give --memory-out")
+        proposer = GoalProposer(memory, ENV, rate=propose_rate, warmup_rows=0, seed=seed)
+    coin = torch.Generator().manual_seed(seed + 1)
     results, new_frames, cpu = [], 0, time.process_time()
     for r in range(rounds + 1):
         loss = fit(model, opt, data, horizon, steps, gen)
         success = np.mean([rollout(env, model, EVAL_SEED + e, 0.0, rng)[1] for e in range(episodes)])
         results.append({"what": "gcsl" if rounds else "clone", "memories": paths, "horizon": horizon, "seed": seed,
                         "round": r, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
-                        "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1)})
+                        "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
+                        "propose_rate": propose_rate,
+                        **({"proposed": proposer.proposed, "propose_s": round(proposer.seconds, 2)} if proposer else {})})
         log(results[-1])
-        if r == rounds:
+        if r == rounds or (stop_at is not None and success >= stop_at):
             break
+        proposed = 0
+        if proposer is not None:
+            chosen = torch.rand(100, generator=coin) < propose_rate
+            goals = proposer.propose(int(chosen.sum()))
+            proposed = 0 if goals is None else goals.shape[0]
+            proposer.proposed += proposed
         for e in range(100):
-            rows, _ = rollout(env, model, 1_000_000 * (seed + 1) + 100 * r + e, sigma, rng)
+            goal = goals[int(chosen[:e].sum())] if proposed and chosen[e] else None
+            rows, _ = rollout(env, model, 1_000_000 * (seed + 1) + 100 * r + e, sigma, rng, goal=goal)
             rows["ep"] = torch.full((50,), int(data["ep"].max()) + 1)
             data = {k: torch.cat([data[k], rows[k]]) for k in data}
+            if memory is not None:
+                store_rows(memory, rows)
             new_frames += 50
     env.close()
+    if memory is not None:
+        memory.storage.close()
     return results
 
 
@@ -216,6 +264,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--episodes", type=int, default=100,
                         help="evaluation episodes of a clone (cover: twice as many goals)")
+    parser.add_argument("--memory-out", default=None,
+                        help="gcsl: a new memory of every row the rounds learn from (the proposer's; a second run's)")
+    parser.add_argument("--propose-rate", type=float, default=0.0,
+                        help="gcsl: share of collection episodes that pursue a GoalProposer's goal (0: the control)")
+    parser.add_argument("--stop-at", type=float, default=None, help="gcsl: stop at this evaluated success")
     parser.add_argument("--out", default=None, help="also append the JSON lines to this file (plot: read them)")
     parser.add_argument("--runs", nargs="*", default=[], help="plot: NAME=RUN_DIR of recipe runs")
     parser.add_argument("--png", default="hand_reach.png", help="plot: the figure")
@@ -239,7 +292,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     for horizon in args.horizon:
         gcsl(args.memories, horizon, args.steps, args.rounds if args.what == "gcsl" else 0, args.sigma, args.seed, log,
-             episodes=args.episodes)
+             episodes=args.episodes, memory_out=args.memory_out, propose_rate=args.propose_rate, stop_at=args.stop_at)
 
 
 if __name__ == "__main__":
