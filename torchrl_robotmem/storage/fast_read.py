@@ -46,7 +46,8 @@ import numcodecs.blosc
 import numcodecs.zstd
 import numpy as np
 import torch
-from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, ZstdCodec
+
+from .chunk_pipeline import parse_pipeline, usable_cpus
 
 __all__ = ["ChunkPlan", "plan_array", "read_into", "workers"]
 
@@ -77,22 +78,11 @@ class ChunkPlan:
     """
 
     def __init__(self, arr: Any, path: str, local_dir: str) -> None:
-        codecs = list(arr.metadata.codecs)
-        first = codecs.pop(0) if codecs else None
-        if not isinstance(first, BytesCodec) or not _little_endian(first, arr):
-            raise ValueError(f"{path}: codec pipeline {arr.metadata.codecs} starts with no little-endian 'bytes' codec")
-        self.checksum = bool(codecs) and isinstance(codecs[-1], Crc32cCodec)
-        if self.checksum:
-            codecs.pop()
-        self.codec = None
-        if codecs:
-            kind = {BloscCodec: "blosc", ZstdCodec: "zstd"}.get(type(codecs[0]))
-            if kind is None or len(codecs) > 1:
-                raise ValueError(f"{path}: codec pipeline {arr.metadata.codecs} is not one this module decodes")
-            self.codec = kind
-        chunks = tuple(arr.metadata.chunk_grid.chunk_shape)
-        if chunks[1:] != tuple(arr.shape[1:]):
-            raise ValueError(f"{path}: chunks {list(chunks)} split the rows' own dimensions")
+        try:
+            pipe = parse_pipeline(arr)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
+        self.checksum, self.codec, chunks = pipe.checksum, pipe.kind, pipe.chunk_shape
         self.dtype = np.dtype(arr.dtype)
         self.chunk_shape = chunks
         self.nbytes = int(np.prod(chunks)) * self.dtype.itemsize
@@ -132,11 +122,6 @@ class ChunkPlan:
         return out.view(self.dtype).reshape(self.chunk_shape)
 
 
-def _little_endian(codec: BytesCodec, arr: Any) -> bool:
-    endian = getattr(codec.endian, "value", codec.endian)
-    return endian == "little" or (endian is None and np.dtype(arr.dtype).itemsize == 1)
-
-
 def plan_array(arr: Any, path: str, local_dir: Any) -> ChunkPlan | None:
     """The :class:`ChunkPlan` of ``arr``, or ``None`` where Zarr must read it (another codec, a remote store)."""
     if local_dir is None:
@@ -149,11 +134,7 @@ def plan_array(arr: Any, path: str, local_dir: Any) -> ChunkPlan | None:
 
 def workers(tasks: int) -> int:
     """Threads for ``tasks`` chunk reads: the CPUs this process may use, at most :data:`MAX_WORKERS`."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
-    return max(1, min(cpus, MAX_WORKERS, tasks))
+    return usable_cpus(tasks, MAX_WORKERS)
 
 
 def read_into(arrays: dict, columns: dict, n0: int, chunk_rows: int, *, local_dir: Any) -> set[str]:

@@ -48,13 +48,14 @@ from typing import Any
 import google_crc32c
 import numpy as np
 from numcodecs import Blosc, Zstd
-from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, ZstdCodec
 from zarr.core.sync import sync as zarr_sync
 from zarr.storage import LocalStore
 
 try:
+    from .chunk_pipeline import parse_pipeline, usable_cpus
     from .contained import FolderCheck
 except ImportError:  # loaded as a top-level module by the commit worker (this folder is its sys.path[0])
+    from chunk_pipeline import parse_pipeline, usable_cpus
     from contained import FolderCheck
 
 __all__ = ["ChunkCodec", "MAX_THREADS", "plan_array", "write_chunks", "write_file"]
@@ -89,32 +90,15 @@ class ChunkCodec:
 
     def __init__(self, arr: Any) -> None:
         meta = arr.metadata
-        codecs = list(meta.codecs)
-        first = codecs.pop(0) if codecs else None
-        self.dtype = np.dtype(arr.dtype)
-        if not isinstance(first, BytesCodec) or not _little_endian(first, self.dtype):
-            raise ValueError(f"codec pipeline {meta.codecs} starts with no little-endian 'bytes' codec")
-        self.checksum = bool(codecs) and isinstance(codecs[-1], Crc32cCodec)
-        if self.checksum:
-            codecs.pop()
-        self.compressor: str | None = None
+        pipe = parse_pipeline(arr)
+        self.dtype, self.checksum, self.compressor, chunks = pipe.dtype, pipe.checksum, pipe.kind, pipe.chunk_shape
         self._encode: Callable[[np.ndarray], bytes] | None = None
-        if len(codecs) > 1:
-            raise ValueError(f"codec pipeline {meta.codecs} is not one this module encodes")
-        if codecs and isinstance(codecs[0], BloscCodec):
-            c = codecs[0]
-            self.compressor = "blosc"
+        c = pipe.compressor
+        if pipe.kind == "blosc":
             self._encode = Blosc(cname=_value(c.cname), clevel=int(c.clevel), shuffle=_SHUFFLE[_value(c.shuffle)],
                                  blocksize=int(c.blocksize), typesize=int(c.typesize)).encode
-        elif codecs and isinstance(codecs[0], ZstdCodec):
-            c = codecs[0]
-            self.compressor = "zstd"
+        elif pipe.kind == "zstd":
             self._encode = Zstd(level=int(c.level), checksum=bool(c.checksum)).encode
-        elif codecs:
-            raise ValueError(f"codec pipeline {meta.codecs} is not one this module encodes")
-        chunks = tuple(int(k) for k in meta.chunk_grid.chunk_shape)
-        if chunks[1:] != tuple(arr.shape[1:]):
-            raise ValueError(f"chunks {list(chunks)} split the rows' own dimensions {list(arr.shape[1:])}")
         self.chunk_shape = chunks
         self.shape0 = int(arr.shape[0])
         self.fill_value = meta.fill_value
@@ -152,11 +136,6 @@ class ChunkCodec:
 
 def _value(x: Any) -> Any:
     return getattr(x, "value", x)
-
-
-def _little_endian(codec: BytesCodec, dtype: np.dtype) -> bool:
-    endian = _value(codec.endian)
-    return endian == "little" or (endian is None and dtype.itemsize == 1)
 
 
 def plan_array(arr: Any) -> tuple[str, ChunkCodec, Callable[[str], None]] | None:
@@ -208,14 +187,6 @@ def write_file(root: str, key: str, buffers: list, check: Callable[[str], None] 
         raise
 
 
-def _threads(tasks: int) -> int:
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
-    return max(1, min(cpus, MAX_THREADS, tasks))
-
-
 def write_chunks(array: Callable[[str], Any], payload: dict[int, dict[str, np.ndarray]], rows: int, prefix: str = "",
                  *, plans: dict | None = None, threads: int | None = None) -> None:
     """Writes ``payload`` (chunk id -> array path -> rows from the chunk's start) to the arrays ``array(path)`` opens.
@@ -254,7 +225,7 @@ def write_chunks(array: Callable[[str], Any], payload: dict[int, dict[str, np.nd
         write_file(root, codec.key(c), codec.encode(values), check)
 
     errors: list[BaseException] = []
-    n = _threads(len(direct)) if threads is None else max(1, min(threads, len(direct)))
+    n = usable_cpus(len(direct), MAX_THREADS) if threads is None else max(1, min(threads, len(direct)))
     if n <= 1:
         for task in direct:
             try:
