@@ -189,11 +189,12 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
     results, new_frames, cpu = [], 0, time.process_time()
     for r in range(rounds + 1):
         loss = fit(model, opt, data, horizon, steps, gen)
-        success = np.mean([rollout(env, model, EVAL_SEED + e, 0.0, rng)[1] for e in range(episodes)])
+        outcomes = [rollout(env, model, EVAL_SEED + e, 0.0, rng)[1] for e in range(episodes)]
+        success = np.mean(outcomes)
         results.append({"what": "gcsl" if rounds else "clone", "memories": paths, "horizon": horizon, "seed": seed,
                         "round": r, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
                         "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
-                        "propose_rate": propose_rate,
+                        "propose_rate": propose_rate, "outcomes": "".join("1" if o else "0" for o in outcomes),
                         **({"proposed": proposer.proposed, "propose_s": round(proposer.seconds, 2)} if proposer else {})})
         log(results[-1])
         if r == rounds or (stop_at is not None and success >= stop_at):
