@@ -332,3 +332,27 @@ def test_a_clean_close_reads_only_the_appended_rows_and_seals_the_episodes_a_ful
     with ZarrStorage(path, max_size) as st:  # a writer that appends nothing seals no open end
         pass
     assert _seal(path)["open_ends"] == []
+
+
+@pytest.mark.parametrize("how", ["set", "update_"])  # ZarrStorage.set in place; TorchRL's in-place write of the rows
+def test_an_in_place_write_that_reopens_an_old_episode_is_sealed_open(tmp_path, how):
+    """A session that clears an older row's done flag (appending nothing) seals that episode as open."""
+    path = str(tmp_path / "m.zarr")
+    rows = _rows(0, 20)
+    rows["next", "done"][[9, 19]] = True  # two whole episodes
+    with ZarrStorage(path, 100, chunk_rows=CHUNK, goal_conditioned=False) as st:
+        st.set(torch.arange(20), rows)
+    assert _seal(path)["open_ends"] == []
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 100, chunk_rows=CHUNK, goal_conditioned=False))
+    if how == "set":
+        row = rows[9:10].clone()
+        row["next", "done"][:] = False
+        rb.storage.set(torch.tensor([9]), row, set_cursor=False)
+    else:
+        done = rb.storage[:]["next", "done"].clone()
+        done[9] = False
+        rb.update_(TensorDict({("next", "done"): done}, [len(rb)]))
+    rb.storage.close()
+    assert _seal(path)["open_ends"] == [9]
+    with ZarrStorage(path, 100, chunk_rows=CHUNK, goal_conditioned=False) as st:  # the next writer closes it
+        assert bool(st[9]["next", "done"])

@@ -277,8 +277,14 @@ class MemoryStore:
         """A context under which reads scan whole columns (readahead on: ``RowFile.scanning``)."""
         return self.rows.scanning() if self.rows is not None else contextlib.nullcontext()
 
+    def note_in_place(self) -> None:
+        """Stored rows were rewritten (a done flag may have been cleared): the close reads every row for the
+        episodes left open, not only the rows this handle appended."""
+        self.appended = None
+
     def mark_rows_dirty(self, n0: int) -> None:
         """Commits the first ``n0`` rows again (a write that did not say which rows it touched)."""
+        self.note_in_place()
         if n0:
             with self.engine.cv:
                 self.engine.mark_dirty(slice(0, n0), self.mirror.chunk_rows)

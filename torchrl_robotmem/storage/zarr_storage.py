@@ -323,6 +323,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 self._write_ram(cursor, data, set_cursor)
                 if set_cursor:
                     self._store.advance(n, int(rows[-1]) + 1)
+                else:
+                    self._store.note_in_place()
                 self._engine.mark_dirty(dirty, self._mirror.chunk_rows)
             self._engine.kick(notify=completes_chunk(rows, self._mirror.chunk_rows))
 
