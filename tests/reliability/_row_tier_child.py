@@ -101,6 +101,20 @@ def fill_kill(path, conn, read_only, cache, **_):
     conn.send({"filled": False})  # never reached when the open fills the rows
 
 
+def background_fill_kill(path, conn, cache, rows, **_):
+    """Opens a store with no row file as a reader that fills in the background; reads some rows, then is
+    killed with the fill under way or done (whichever: both must leave nothing behind)."""
+    from torchrl_robotmem import ZarrStorage
+
+    os.environ["TORCHRL_ROBOTMEM_CACHE"] = cache
+    os.environ["TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES"] = "0"
+    st = ZarrStorage(path, read_only=True)
+    background = st._store.mirror.fill is not None
+    got = st.get(torch.tensor(rows))
+    conn.send({"background": background, "obs": got["observation"][:, 0].tolist(), "cache": sorted(os.listdir(cache))})
+    _kill_self()
+
+
 def unbounded_grow_kill(path, conn, flush_at, last, kill_at, **_):
     """Test 3: a memory without a declared capacity grows (``chunk_rows=64``), flushing at ``flush_at``;
     then one extend to ``last`` rows that grows it again, and a kill: after the grown rows were written
@@ -218,7 +232,8 @@ def cgroup_reader(path, conn, cgroup, version, rows_bytes, batch, **_):
     st.close()
 
 
-SCENARIOS = {f.__name__: f for f in (ring_overwrite_kill, fresh_writer_kill, fill_kill, unbounded_grow_kill,
+SCENARIOS = {f.__name__: f for f in (ring_overwrite_kill, fresh_writer_kill, fill_kill, background_fill_kill,
+                                     unbounded_grow_kill,
                                      tail_writer, ring_writer, cgroup_reader)}
 
 

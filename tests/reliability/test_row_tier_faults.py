@@ -252,6 +252,26 @@ def test_killed_right_after_filling_the_rows(tmp_path, read_only):
     _check(path, torch.arange(200), read_only=True, sealed=True)
 
 
+def test_killed_while_filling_in_the_background(tmp_path):
+    """A reader that fills in the background, killed after its first read: it served the committed rows, left
+    nothing in the cache directory or the store, and the next opens serve the committed rows."""
+    path, cache = tmp_path / "store.zarr", tmp_path / "cache"
+    cache.mkdir()
+    _make_store(path, torch.arange(200))
+    shutil.rmtree(path / "_rows")
+    before = _hash_tree(path)
+    asked = [199, 0, 70, 130]
+    msgs = _run(tmp_path, "background_fill_kill", killed=True, path=str(path), cache=str(cache), rows=asked)
+    assert msgs and msgs[0]["background"], f"the reader did not fill in the background: {msgs}"
+    expected = make_rows(torch.arange(200))["observation"][asked, 0].tolist()
+    assert msgs[0]["obs"] == expected, msgs[0]
+    assert msgs[0]["cache"] == [], f"a reader's private row file has a name: {msgs[0]}"
+    assert list(cache.iterdir()) == [], "the killed reader left a row file in the cache directory"
+    assert _hash_tree(path) == before, "a reader changed the store"
+    _check(path, torch.arange(200), read_only=True, sealed=False)
+    _check(path, torch.arange(200), read_only=False, sealed=False)
+
+
 def test_torn_row_file_with_its_seal_is_filled_again(tmp_path):
     path = tmp_path / "store.zarr"
     _make_store(path, torch.arange(RING + 40))  # a ring that wrapped

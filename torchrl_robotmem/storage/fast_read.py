@@ -137,6 +137,59 @@ def workers(tasks: int) -> int:
     return usable_cpus(tasks, MAX_WORKERS)
 
 
+class ChunkReads:
+    """The arrays of a store read from their chunk files into columns, one row chunk at a time (thread-safe).
+
+    Args:
+        arrays (dict): ``{path: zarr.Array}``.
+        columns (dict): ``{path: CPU tensor}`` with the array's row shape (views allowed).
+        chunk_rows (int): rows per chunk.
+
+    Keyword Args:
+        local_dir (str or None): the store's directory (``None``: every path is left for Zarr).
+
+    Attributes:
+        left (set): the paths that cannot be read here (another codec, a remote store, a column of
+            another dtype or shape): read them through Zarr.
+    """
+
+    def __init__(self, arrays: dict, columns: dict, chunk_rows: int, *, local_dir: Any) -> None:
+        self.todo, self.left = {}, set()
+        self.chunk_rows = int(chunk_rows)
+        for p, arr in arrays.items():
+            plan, dest = plan_array(arr, p, local_dir), _numpy(columns[p])
+            if plan is None or dest is None or dest.dtype != plan.dtype or dest.shape[1:] != tuple(arr.shape[1:]):
+                self.left.add(p)
+            elif dest.size:
+                self.todo[p] = (plan, dest)
+        self._local = threading.local()
+
+    def _buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        local = self._local
+        if not hasattr(local, "scratch"):
+            top = max(plan.nbytes for plan, _ in self.todo.values())
+            local.raw = np.empty(top + top // 8 + 4096, np.uint8)  # compressed data can outgrow its input a little
+            local.scratch = np.empty(top, np.uint8)
+        return local.raw, local.scratch
+
+    def read(self, c: int, n0: int, skip: set[str] = frozenset()) -> set[str]:
+        """Reads row chunk ``c`` (its rows below ``n0``) of every array not in ``skip``; returns the paths that failed."""
+        if not self.todo:
+            return set()
+        raw_buf, scratch = self._buffers()
+        lo, hi = c * self.chunk_rows, min((c + 1) * self.chunk_rows, n0)
+        failed = set()
+        for p, (plan, dest) in self.todo.items():
+            if p in skip:
+                continue
+            try:
+                raw = _read_file(plan.file(c), raw_buf)
+                np.copyto(dest[lo:hi], plan.decode(raw, scratch)[: hi - lo])
+            except (OSError, ValueError, RuntimeError):
+                failed.add(p)
+        return failed
+
+
 def read_into(arrays: dict, columns: dict, n0: int, chunk_rows: int, *, local_dir: Any) -> set[str]:
     """Reads rows ``[0, n0)`` of every array of ``arrays`` into ``columns``; returns the paths left for Zarr.
 
@@ -153,39 +206,18 @@ def read_into(arrays: dict, columns: dict, n0: int, chunk_rows: int, *, local_di
         The paths not read here (another codec, a chunk file missing or not as written): read
         them through Zarr, and list their chunk files after the read.
     """
-    todo, left = {}, set()
-    for p, arr in arrays.items():
-        plan, dest = plan_array(arr, p, local_dir), _numpy(columns[p])
-        if plan is None or dest is None or dest.dtype != plan.dtype or dest.shape[1:] != tuple(arr.shape[1:]):
-            left.add(p)
-        elif dest.size:
-            todo[p] = (plan, dest)
+    reads = ChunkReads(arrays, columns, chunk_rows, local_dir=local_dir)
     nchunks = -(-n0 // chunk_rows)
-    if not todo or not nchunks:
-        return left
+    if not reads.todo or not nchunks:
+        return reads.left
     failed: set[str] = set()
     lock = threading.Lock()
-    local = threading.local()
-
-    def buffers() -> tuple[bytearray, np.ndarray]:
-        if not hasattr(local, "scratch"):
-            top = max(plan.nbytes for plan, _ in todo.values())
-            local.raw = np.empty(top + top // 8 + 4096, np.uint8)  # compressed data can outgrow its input a little
-            local.scratch = np.empty(top, np.uint8)
-        return local.raw, local.scratch
 
     def chunk(c: int) -> None:
-        raw_buf, scratch = buffers()
-        lo, hi = c * chunk_rows, min((c + 1) * chunk_rows, n0)
-        for p, (plan, dest) in todo.items():
-            if p in failed:
-                continue
-            try:
-                raw = _read_file(plan.file(c), raw_buf)
-                np.copyto(dest[lo:hi], plan.decode(raw, scratch)[: hi - lo])
-            except (OSError, ValueError, RuntimeError):
-                with lock:
-                    failed.add(p)
+        bad = reads.read(c, n0, skip=failed)
+        if bad:
+            with lock:
+                failed.update(bad)
 
     n_workers = workers(nchunks)
     if n_workers == 1:
@@ -194,7 +226,7 @@ def read_into(arrays: dict, columns: dict, n0: int, chunk_rows: int, *, local_di
     else:
         with ThreadPoolExecutor(n_workers, thread_name_prefix="robotmem-open") as pool:
             list(pool.map(chunk, range(nchunks)))
-    return left | failed
+    return reads.left | failed
 
 
 def _numpy(col: torch.Tensor) -> np.ndarray | None:

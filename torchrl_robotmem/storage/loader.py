@@ -27,7 +27,8 @@ from . import _backend, integrity
 from .format import FORMAT_MARKER, is_strict, writing_config
 from .journal import replay_journal
 
-__all__ = ["check_arguments", "grow_arrays", "load_rows", "open_record", "pending_record", "reopen_record", "snapshot", "use_worker"]
+__all__ = ["check_arguments", "fill_in_background", "grow_arrays", "load_rows", "open_record", "pending_record",
+           "reopen_record", "snapshot", "use_worker"]
 
 
 def use_worker(handle, *, background: bool, commit_process: bool | None) -> bool:
@@ -172,6 +173,32 @@ def pending_record(handle, attrs: dict) -> dict | None:
         with writing_config():
             return replay_journal(handle.group, journal)
     return {**attrs, **journal["meta"]}
+
+
+#: rows (bytes) from which a reader fills in the background (below it, the open's read is a few
+#: tens of milliseconds); ``$TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES`` sets another threshold
+BACKGROUND_FILL_BYTES = 64 << 20
+BACKGROUND_FILL_ENV = "TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES"
+
+
+def fill_in_background(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> bool:
+    """Starts a background fill of a reader's rows (:mod:`.background_fill`) where it serves what a
+    synchronous load would; returns whether it started (``False``: call :func:`load_rows`).
+
+    Only a reader of a local store on the CPU, with one batch dimension, that raises on damage, whose
+    record has no pending journal and whose ring has not wrapped, with at least
+    :data:`BACKGROUND_FILL_BYTES` of rows, every column read from its chunk files.
+    """
+    n0 = mirror.dim0(int(attrs.get("len", 0)))
+    threshold = int(os.environ.get(BACKGROUND_FILL_ENV, BACKGROUND_FILL_BYTES))
+    if not (handle.read_only and handle.local_dir is not None and on_damage == "raise" and mirror.ndim == 1
+            and str(mirror.device).startswith("cpu") and not record.get("journal")
+            and int(attrs.get("write_count", 0)) <= mirror.max_size and n0
+            and n0 * mirror.layout.row_bytes >= threshold):
+        return False
+    return mirror.start_fill(handle.group, n0, local_dir=handle.local_dir,
+                             record_file=os.path.join(handle.local_dir, "zarr.json"),
+                             fallback=lambda: load_rows(handle, mirror, record, attrs, on_damage=on_damage))
 
 
 def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> int:

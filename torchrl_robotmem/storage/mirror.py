@@ -34,7 +34,8 @@ import torch
 from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase
 
 from . import _backend
-from .fast_read import read_into
+from .background_fill import RowFill
+from .fast_read import ChunkReads, read_into
 from .format import read_rows
 from .journal import PREFIX, journal_chunks
 from .layout import PackedLayout
@@ -76,9 +77,11 @@ class RamMirror:
         self.chunk_rows: int | None = None
         self.layout: PackedLayout | None = None
         self.key_specs: dict | None = None  # {key: (dtype, row shape)} without the tags: the hot validation path
-        self.packed: torch.Tensor | None = None
-        self.views: TensorDictBase | None = None
-        self.columns: dict = {}
+        # the rows (read through ``packed`` / ``views`` / ``columns``, which wait for a fill under way)
+        self._packed: torch.Tensor | None = None
+        self._views: TensorDictBase | None = None
+        self._columns: dict = {}
+        self.fill: RowFill | None = None  # a reader's rows filled in the background (see ``start_fill``)
         self.rows: RowFile | None = None  # the file the packed rows are mapped from (None: RAM)
         self.unbounded = False  # a memory without a declared capacity: chunks sized for a large memory
         self.mapped_layout: dict | None = None  # the layout of the rows in that file
@@ -132,28 +135,97 @@ class RamMirror:
         shape = (self.max_dim0, *self.inner_shape)
         self.before_write()
         if self.rows is None:
-            self.packed = self.layout.allocate(shape, self.device)
+            self._packed = self.layout.allocate(shape, self.device)
         else:
             layout = self.file_layout()
             same = old is not None and self.mapped_layout is not None and not self.rows.in_memory and \
                 {**self.mapped_layout, "shape": None} == {**layout, "shape": None} and \
                 self.mapped_layout["shape"][1:] == layout["shape"][1:]
-            self.packed = self.rows.map(shape, self.layout.row_bytes, new_file=old is not None and not same)
+            self._packed = self.rows.map(shape, self.layout.row_bytes, new_file=old is not None and not same)
             self.mapped_layout = layout
             if same and not self.rows.in_memory:
                 old = None  # the rows are in the file already (unless there was no room for it: copied then)
-        self.views = self.layout.views(self.packed)
-        self.columns = dict(self.views.items(include_nested=True, leaves_only=True))
+        self._views = self.layout.views(self._packed)
+        self._columns = dict(self._views.items(include_nested=True, leaves_only=True))
         if old is not None:
             n0 = self.filled()
             for path in self.schema:
                 key = _backend.path_to_key(path)
                 col = old.get(key, None)
-                self.views.get(key)[:n0] = col[:n0] if col is not None else 0
+                self._views.get(key)[:n0] = col[:n0] if col is not None else 0
 
     def column(self, path: str) -> torch.Tensor:
         """The column of an array path (all rows)."""
         return self.views.get(_backend.path_to_key(path))
+
+    def _column(self, path: str) -> torch.Tensor:
+        """The column of an array path, as the loads write it (no wait for a fill: they are the fill)."""
+        return self._views.get(_backend.path_to_key(path))
+
+    # -- the rows, and a fill under way ------------------------------------------------------
+
+    @property
+    def packed(self) -> torch.Tensor | None:
+        """The packed rows ``[max_dim0, *inner, row_bytes]`` (filled: waits for a fill under way)."""
+        self.finish_fill()
+        return self._packed
+
+    @property
+    def views(self) -> TensorDictBase | None:
+        """A TensorDict of views of the packed rows, one per column (filled: waits for a fill under way)."""
+        self.finish_fill()
+        return self._views
+
+    @property
+    def columns(self) -> dict:
+        """``{key: view}`` of every column (filled: waits for a fill under way)."""
+        self.finish_fill()
+        return self._columns
+
+    def start_fill(self, group: Any, n0: int, *, local_dir: Any, record_file: str,
+                   fallback: Callable[[], Any]) -> bool:
+        """Fills the first ``n0`` rows from the chunk files in the background (:class:`.background_fill.RowFill`).
+
+        Returns ``False`` (nothing started) where a column cannot be read from its files: fill synchronously then.
+        """
+        self.finish_fill()
+        arrays = {path: group[path] for path in self.schema}
+        reads = ChunkReads(arrays, {path: self._column(path) for path in arrays}, self.chunk_rows, local_dir=local_dir)
+        if reads.left or not reads.todo:
+            return False
+        self.fill = RowFill(reads, n0, record_file=record_file, max_size=self.max_size, fallback=fallback)
+        return True
+
+    def finish_fill(self) -> None:
+        """Waits for a fill under way (raising the error that stopped it, at every call after it too)."""
+        fill = self.fill
+        if fill is not None:
+            fill.wait()
+            self.fill = None
+
+    def stop_fill(self) -> None:
+        """Stops the background thread of a fill under way (reads after it fill what is left themselves)."""
+        if self.fill is not None:
+            self.fill.stop()
+
+    def gather(self, index, n0: int | None) -> torch.Tensor:
+        """The packed rows at ``index`` of the first ``n0`` first-dimension rows (``None``: all of them).
+
+        One gather of whole rows. During a fill, the chunks of those rows are filled first (an index
+        that is not an integer, a slice or an integer tensor waits for the whole fill).
+        """
+        fill = self.fill
+        if fill is not None:
+            n = self.max_dim0 if n0 is None else int(n0)
+            rows = _first_dim_rows(index, n)
+            if rows is None:
+                self.finish_fill()
+            else:
+                fill.ensure(rows)
+                if fill.done:
+                    self.finish_fill()
+        packed = self._packed if n0 is None else self._packed[:n0]
+        return packed[index]
 
     def lead(self, col: torch.Tensor) -> torch.Tensor:
         """A tag column without the item dims past ``ndim`` (tags are equal along them)."""
@@ -264,10 +336,10 @@ class RamMirror:
             return set()
         self.before_write()
         arrays = {path: group[path] for path in self.schema}
-        left = read_into(arrays, {path: self.column(path) for path in arrays}, n0, self.chunk_rows, local_dir=local_dir)
+        left = read_into(arrays, {path: self._column(path) for path in arrays}, n0, self.chunk_rows, local_dir=local_dir)
         for path in self.schema:
             if path in left:
-                self.column(path)[:n0] = torch.from_numpy(
+                self._column(path)[:n0] = torch.from_numpy(
                     read_rows(arrays[path], path, n0, self.chunk_rows, store_path, read_only))
         return left
 
@@ -275,7 +347,7 @@ class RamMirror:
         """A reader applies a pending journal in RAM only."""
         self.before_write()
         for path, rows, values in journal_chunks(group, journal):
-            self.column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
+            self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
 
     def reread_overwritten(self, store: Any, group: Any, record: dict, n0: int, *, store_path: Any) -> bool:
         """Reads again, chunk by chunk, the rows a writer may have overwritten during a reader's load.
@@ -308,5 +380,17 @@ class RamMirror:
             else:
                 raise RuntimeError(f"Could not read rows {lo}..{hi} of {store_path!r}: the writer commits too often.")
             for path, v in values.items():
-                self.column(path)[lo:hi] = torch.from_numpy(np.ascontiguousarray(v))
+                self._column(path)[lo:hi] = torch.from_numpy(np.ascontiguousarray(v))
         return True
+
+
+def _first_dim_rows(index, n: int) -> np.ndarray | None:
+    """The first-dimension rows an index of ``n`` rows reads (``None``: an index this does not resolve)."""
+    if isinstance(index, (int, np.integer)) and not isinstance(index, bool):
+        return np.array([int(index) + n if index < 0 else int(index)])
+    if isinstance(index, slice):
+        return np.arange(*index.indices(n))
+    if isinstance(index, torch.Tensor) and not index.dtype.is_floating_point and index.dtype != torch.bool:
+        rows = index.reshape(-1).cpu().numpy().astype(np.int64)
+        return np.where(rows < 0, rows + n, rows)
+    return None

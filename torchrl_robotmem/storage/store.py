@@ -353,6 +353,9 @@ class MemoryStore:
                               stacklevel=user_stacklevel())
 
     def release(self) -> None:
+        mirror = getattr(self, "mirror", None)
+        if mirror is not None:
+            mirror.stop_fill()  # before the file is let go
         self.handle.closed = True
         engine = getattr(self, "engine", None)
         if engine is not None:

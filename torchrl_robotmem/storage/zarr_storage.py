@@ -148,7 +148,9 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._store.sync_attrs(attrs)
         sealed = self._store.rows_sealed and pending is None  # the row file holds the record's rows
         self._allocate()
-        if sealed:
+        background = not sealed and loader.fill_in_background(self._handle, self._mirror, record, attrs,
+                                                               on_damage=self._store.on_damage)
+        if sealed or background:  # background: the rows are filled from the chunks as they are read
             n = int(attrs.get("len", 0))
         else:
             n = loader.load_rows(self._handle, self._mirror, record, attrs, on_damage=self._store.on_damage)
@@ -158,9 +160,26 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         last = int(attrs.get("last_cursor", -1))
         if last >= 0:
             self._set_last_cursor(last)
-        if n and not sealed:  # a sealed file was closed cleanly: its record's counters are exact
+        if n and not sealed and not background:  # a sealed file was closed cleanly: its record's counters are
+            # exact (and a reader filling in the background hands out no id)
             self._store.note_stored(n0)
         self._bump_own()
+
+    @property
+    def _storage(self):
+        """What TorchRL reads as the storage: the rows as the user wrote them (views, a column, a tensorclass).
+
+        Filled: waits for a reader's background fill under way (:mod:`.background_fill`); ``get`` (every
+        ``sample``) waits only for the chunks of its rows.
+        """
+        mirror = getattr(self.__dict__.get("_store"), "mirror", None)
+        if mirror is not None:
+            mirror.finish_fill()
+        return self.__dict__.get("_stored")
+
+    @_storage.setter
+    def _storage(self, value) -> None:
+        self.__dict__["_stored"] = value
 
     # the engine's parts, owned by the MemoryStore (read here, never copied: a reopen rebuilds them there)
     @property
@@ -414,8 +433,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             return self._store.column(index, None if self._is_full else self._len_along_dim0)
         if isinstance(index, list):
             index = torch.as_tensor(index)
-        packed = self._mirror.packed if self._is_full else self._mirror.packed[: self._len_along_dim0]
-        return self._schema.rows_out(self._mirror.layout.views(packed[index], self._hidden))
+        packed = self._mirror.gather(index, None if self._is_full else self._len_along_dim0)
+        return self._schema.rows_out(self._mirror.layout.views(packed, self._hidden))
 
     # -- durability ----------------------------------------------------------------------------
 
@@ -465,6 +484,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         """Re-reads a ``read_only`` store to see rows committed since; returns ``len`` (on an error, keeps the old rows)."""
         if not self.read_only:
             return len(self)
+        self._mirror.finish_fill()  # the rows of the last open or refresh, whole, before anything is replaced
         saved = dict(self.__dict__)
         restore = self._store.snapshot()
         try:

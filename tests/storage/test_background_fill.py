@@ -1,0 +1,175 @@
+"""A reader whose row file must be filled opens at once and fills in the background (issue 41).
+
+Real stores on disk; the row file is made unusable for the reader by deleting it (``remove_rows``), as a
+crash or an active writer leaves it. ``TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES=0`` makes these small
+stores fill in the background (by default only rows of 64 MiB and more do).
+"""
+from __future__ import annotations
+
+import glob
+import os
+import threading
+
+import numpy as np
+import pytest
+import torch
+import zarr
+from tensordict import TensorDict
+from torchrl.data import RandomSampler, TensorDictReplayBuffer
+
+from torchrl_robotmem import ZarrStorage
+from torchrl_robotmem.storage.background_fill import RowFill
+from torchrl_robotmem.storage.fast_read import ChunkReads
+from torchrl_robotmem.storage.integrity import IntegrityError
+from torchrl_robotmem.storage.loader import BACKGROUND_FILL_ENV
+from torchrl_robotmem.storage.rowfile import remove_rows
+
+CHUNK = 64
+ROWS = 1000
+
+
+def _rows(lo: int, hi: int) -> TensorDict:
+    """Row ``i`` holds ``i`` in every column (a row whose columns disagree is torn)."""
+    i = torch.arange(lo, hi, dtype=torch.float32)
+    return TensorDict({"obs": i[:, None].expand(-1, 3).clone(), "action": -i[:, None],
+                       ("next", "done"): torch.zeros(hi - lo, 1, dtype=torch.bool)}, [hi - lo])
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """A closed store of ``ROWS`` rows whose row file is gone: a reader fills it from the chunks."""
+    monkeypatch.setenv(BACKGROUND_FILL_ENV, "0")
+    path = str(tmp_path / "m.zarr")
+    with ZarrStorage(path, 2 * ROWS, chunk_rows=CHUNK, goal_conditioned=False, env="FetchReach-v4") as st:
+        st.set(torch.arange(ROWS), _rows(0, ROWS))
+    assert remove_rows(path)
+    return path
+
+
+def _whole(rows: TensorDict) -> bool:
+    obs = rows["obs"]
+    return bool((obs == obs[:, :1]).all() and (rows["action"][:, 0] == -obs[:, 0]).all())
+
+
+def test_rows_are_filled_chunk_by_chunk_and_the_asked_ones_first(store):
+    """RowFill without its thread: ``ensure`` fills exactly the chunks of the rows asked for, ``wait`` the rest."""
+    group = zarr.open_group(store, mode="r")
+    out = {p: torch.zeros(ROWS, *group[p].shape[1:], dtype=torch.float32) for p in ("obs", "action")}
+    reads = ChunkReads({p: group[p] for p in out}, out, CHUNK, local_dir=store)
+    fill = RowFill(reads, ROWS, record_file=os.path.join(store, "zarr.json"), max_size=2 * ROWS,
+                   fallback=lambda: pytest.fail("nothing here needs the synchronous path"), start=False)
+    fill.ensure(np.array([5, 700]))  # chunks 0 and 10
+    filled = out["obs"][:, 0] == torch.arange(ROWS, dtype=torch.float32)
+    assert filled[:CHUNK].all() and filled[10 * CHUNK: 11 * CHUNK].all()
+    assert int(filled.sum()) == 2 * CHUNK  # no other chunk (row 0, which holds 0 either way, is in chunk 0)
+    assert not fill.done
+    fill.wait()
+    assert fill.done and torch.equal(out["obs"][:, 2], torch.arange(ROWS, dtype=torch.float32))
+    assert torch.equal(out["action"][:, 0], -torch.arange(ROWS, dtype=torch.float32))
+
+
+def test_a_reader_opens_without_reading_and_serves_only_filled_rows(store):
+    """The open reads no chunk; every read after it (a sample, TorchRL's ``_storage``) sees whole, filled rows."""
+    gen = torch.Generator().manual_seed(0)
+    with ZarrStorage(store, read_only=True) as reader:
+        rb = TensorDictReplayBuffer(storage=reader, sampler=RandomSampler(), batch_size=256)
+        batch = rb.sample()  # possibly before the background thread got to these chunks
+        assert _whole(batch)
+        idx = torch.randint(-ROWS, ROWS, (300,), generator=gen)  # negative indices count from len
+        rows = reader.get(idx)
+        assert torch.equal(rows["obs"][:, 0], (idx % ROWS).float())
+        assert torch.equal(reader[10:20]["obs"][:, 0], torch.arange(10, 20, dtype=torch.float32))
+        stored = reader._storage  # waits for the whole fill
+        assert torch.equal(stored["obs"][:ROWS, 1], torch.arange(ROWS, dtype=torch.float32))
+        assert reader.summary()["rows"] == ROWS
+
+
+def test_a_damaged_chunk_is_refused_at_the_first_read_never_served(store):
+    """A flipped byte in a chunk: the open returns, and every read of the rows raises the error a synchronous
+    open raises (naming the array and the chunk), the sample's and every later one."""
+    target = os.path.join(store, "action", "c", "3", "0")
+    data = bytearray(open(target, "rb").read())
+    data[len(data) // 2] ^= 0x40
+    open(target, "wb").write(bytes(data))
+    named = r"array 'action' chunk 3 \(action/c/3/0, rows 192-255\): checksum mismatch"
+    reader = ZarrStorage(store, read_only=True)
+    try:
+        with pytest.raises(IntegrityError, match=named):
+            reader.get(torch.tensor([200]))
+        with pytest.raises(IntegrityError, match=named):
+            reader.get(torch.tensor([0]))  # a chunk that reads fine: the store is refused all the same
+        with pytest.raises(IntegrityError, match=named):
+            _ = reader._storage
+    finally:
+        reader.close()
+    os.environ[BACKGROUND_FILL_ENV] = str(1 << 40)  # the synchronous open says the same
+    with pytest.raises(IntegrityError, match=named):
+        ZarrStorage(store, read_only=True)
+
+
+def test_a_missing_chunk_file_is_refused_by_the_open_itself(store):
+    """The open lists the chunk files of a store it will read (metadata only): a missing one refuses the open."""
+    os.remove(os.path.join(store, "obs", "c", "1", "0"))
+    with pytest.raises(IntegrityError, match=r"array 'obs' chunk 1 \(obs/c/1/0, rows 64-127\): chunk file missing"):
+        ZarrStorage(store, read_only=True)
+
+
+def test_a_fill_beside_a_writer_that_appends_and_wraps_serves_whole_committed_rows(store):
+    """A writer appends (the last chunk rewritten) and then wraps the ring (overwrites, journalled) while the
+    reader fills: the appends are read as they are, the wrap hands the fill to the synchronous path; every row
+    served is whole, and every row is one the store held (the open's, or one written since)."""
+    reader = ZarrStorage(store, read_only=True)
+    try:
+        first = reader.get(torch.arange(0, CHUNK))  # chunk 0, before the writer's commits
+        assert torch.equal(first["obs"][:, 0], torch.arange(CHUNK, dtype=torch.float32))
+        with ZarrStorage(store, chunk_rows=CHUNK, goal_conditioned=False) as writer:
+            writer.set(torch.arange(ROWS, ROWS + 10), _rows(ROWS, ROWS + 10))  # appends into the open chunk
+            writer.flush()
+            writer.set(torch.arange(ROWS + 10, 2 * ROWS), _rows(ROWS + 10, 2 * ROWS))
+            writer.flush()
+            writer.set(torch.arange(0, 200), _rows(5000, 5200))  # the ring wraps: rows 0-199 overwritten
+            writer.flush()
+        rows = reader.get(torch.arange(ROWS))
+        assert _whole(rows)
+        held = rows["obs"][:, 0]
+        i = torch.arange(ROWS, dtype=torch.float32)
+        assert bool(((held == i) | ((i < 200) & (held == i + 5000))).all())
+        assert len(reader) == ROWS  # the open's length, until a refresh
+        assert reader.refresh() == 2 * ROWS
+        assert torch.equal(reader.get(torch.arange(200))["obs"][:, 0], torch.arange(5000, 5200, dtype=torch.float32))
+    finally:
+        reader.close()
+
+
+def test_close_during_a_fill_stops_its_thread(store):
+    before = {t.ident for t in threading.enumerate()}
+    reader = ZarrStorage(store, read_only=True)
+    reader.close()
+    assert not [t for t in threading.enumerate() if t.name == "robotmem-fill" and t.ident not in before]
+
+
+def test_a_forked_child_fills_what_is_left_itself(store):
+    """A DataLoader-style fork right after the open: the child reads every row, whole, whatever the parent's
+    thread had filled at the fork."""
+    reader = ZarrStorage(store, read_only=True)
+    try:
+        pid = os.fork()
+        if pid == 0:  # the child: exit code 0 if every row is right
+            ok = False
+            try:
+                rows = reader.get(torch.arange(ROWS))
+                ok = _whole(rows) and torch.equal(rows["obs"][:, 0], torch.arange(ROWS, dtype=torch.float32))
+            finally:
+                os._exit(0 if ok else 1)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+        assert torch.equal(reader.get(torch.arange(ROWS))["obs"][:, 0], torch.arange(ROWS, dtype=torch.float32))
+    finally:
+        reader.close()
+
+
+def test_below_the_threshold_the_open_reads_every_row(store, monkeypatch):
+    monkeypatch.setenv(BACKGROUND_FILL_ENV, str(1 << 40))
+    with ZarrStorage(store, read_only=True) as reader:
+        assert reader._store.mirror.fill is None
+    assert glob.glob(os.path.join(store, "obs", "c", "*"))
