@@ -272,7 +272,9 @@ class HandArm:
             rounds = self.rounds(root, s)
             pick = rounds[-1] if self.rows is None else next(d for d in rounds if d["memory_rows"] == self.rows)
             picked.append(pick)
-        return ArmData(self.label, list(self.seeds), [d["success"] for d in picked], None,
+        outcomes = ({s: [int(c) for c in d["outcomes"]] for s, d in zip(self.seeds, picked)}
+                    if all("outcomes" in d for d in picked) else None)  # archived before the tool kept them
+        return ArmData(self.label, list(self.seeds), [d["success"] for d in picked], outcomes,
                        [d["cpu_s"] for d in picked], [d["memory_rows"] for d in picked],
                        [d["memory_rows"] for d in picked])
 
@@ -381,6 +383,13 @@ HAND_GCSL = HandArm("GCSL from random data", "hand_gcsl_random.jsonl", "gcsl", s
 HAND_CLONE = HandArm("hindsight clone of the SAC run's memory", "hand_memory.jsonl", "clone")
 HAND_GCSL_MEMORY = HandArm("GCSL on the SAC run's memory", "hand_memory.jsonl", "gcsl")
 HAND_SAC = Runs("SAC+HER from scratch", "hand_reach-s{}-out", seeds=(0, 1))
+#: issue 43 on HandReach: GCSL from 10k random frames, 28 rounds of 100 episodes (150k frames in all), with and
+#: without GoalProposer goals in half the collection episodes; then a second run on each first run's memory
+HAND43_GCSL_CONTROL = HandArm("GCSL", "hand43-gcsl-control.jsonl", "gcsl", seeds=(0, 1, 2))
+HAND43_GCSL_PROPOSE = HandArm("GCSL + GoalProposer", "hand43-gcsl-propose.jsonl", "gcsl", seeds=(0, 1, 2))
+HAND43_SECOND = {"control": HandArm("second run, GCSL", "hand43-gcsl-second-control.jsonl", "gcsl", seeds=(0, 1, 2)),
+                 "propose": HandArm("second run, GCSL + GoalProposer", "hand43-gcsl-second-propose.jsonl", "gcsl",
+                                    seeds=(0, 1, 2))}
 
 
 @dataclass(frozen=True)
@@ -419,6 +428,9 @@ HEADLINES = (
              "#recalltransform-and-goalsimilaritysampler-issue-27-goal-4"),
     Headline("FetchPush-v4 (3), noisy prior + `GoalSimilaritySampler`", "no gain", PUSH30_SAMPLER, PUSH30_CONTROL,
              "#recalltransform-and-goalsimilaritysampler-issue-27-goal-4"),
+    Headline("HandReach-v3 (3), GCSL from random data + `GoalProposer` (half the collection episodes)",
+             "HEADLINE_BUYS", HAND43_GCSL_PROPOSE, HAND43_GCSL_CONTROL,
+             "#handreach-v3-gcsl-three-seeds-with-and-without-the-proposer"),
 )
 
 
@@ -853,8 +865,56 @@ def hand_proposer_pilot(root: Path) -> str:
     return (f"{head} That is {per_goal:.0f} ms a proposed goal. One seed, a pilot: no conclusion either way.\n\n{t}")
 
 
+def hand_gcsl_proposer(root: Path) -> str:
+    """Issue 43 on HandReach: GCSL with and without the proposer, three seeds each, to 150k frames in all."""
+    control, propose = HAND43_GCSL_CONTROL.read(root), HAND43_GCSL_PROPOSE.read(root)
+    c = compare(propose, control)
+    cost = []
+    for seed in propose.seeds:
+        last = HAND43_GCSL_PROPOSE.rounds(root, seed)[-1]
+        cost.append(100 * last["propose_s"] / last["cpu_s"])
+    last = HAND43_GCSL_PROPOSE.rounds(root, 0)[-1]
+    head = (f"**At {_frames_of(propose)} frames in all: {slash(propose.values)} with the proposer, "
+            f"{slash(control.values)} without.** Run-level: {run_level(c)}. Episode-level: {episode_level(c)}. "
+            f"The proposer chose {last['proposed']} goals a run (half the collection episodes) in "
+            f"{slash(cost, lambda x: f'{x:.1f}')}% of the runs' CPU time.")
+    cols = [10000, 30000, 50000, 75000, 100000, 125000, 150000]
+    rows = []
+    for arm in (HAND43_GCSL_CONTROL, HAND43_GCSL_PROPOSE):
+        for seed in arm.seeds:
+            rounds = {d["memory_rows"]: d for d in arm.rounds(root, seed)}
+            best = max(d["success"] for d in rounds.values())
+            rows.append([f"{arm.label}, seed {seed}", *[f2(rounds[f]["success"]) if f in rounds else "-" for f in cols],
+                         f2(best), cpu(rounds[max(rounds)]["cpu_s"])])
+    t = table(["frames in all (10k random first)", *[kf(f) for f in cols], "best",
+               "CPU-s of the rounds (the random collection not counted)"], rows)
+    return head + "\n\n" + t
+
+
+def hand_gcsl_second(root: Path) -> str:
+    """Issue 43 goal 3 on HandReach: a second run (fresh networks) on each first run's memory: the new frames it
+    needed to reach the first run's final success (the first run: 150k frames in all)."""
+    rows = []
+    for name, first_arm in (("control", HAND43_GCSL_CONTROL), ("propose", HAND43_GCSL_PROPOSE)):
+        second = HAND43_SECOND[name]
+        for seed in second.seeds:
+            target = first_arm.rounds(root, seed)[-1]
+            rounds = second.rounds(root, seed)
+            hit = next((d for d in rounds if d["success"] >= target["success"]), None)
+            first_frames = target["memory_rows"]
+            rows.append([f"{first_arm.label}, seed {seed}", f2(target["success"]), kf(first_frames),
+                         f2(rounds[0]["success"]),
+                         (f"{kf(hit['new_frames'])} ({100 * hit['new_frames'] / first_frames:.0f}%)" if hit else
+                          f"not within {kf(rounds[-1]['new_frames'])} (best {f2(max(d['success'] for d in rounds))})"),
+                         cpu(rounds[-1]["cpu_s"])])
+    return table(["first run", "its final success", "its frames", "second run at 0 new frames",
+                  "new frames to reach it (share of the first's)", "second run's CPU-s"], rows)
+
+
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "summary": summary,
+    "hand_gcsl_proposer": hand_gcsl_proposer,
+    "hand_gcsl_second": hand_gcsl_second,
     "pnp_proposer_pilot": pnp_proposer_pilot,
     "hand_proposer_pilot": hand_proposer_pilot,
     "reach_second": reach_second,

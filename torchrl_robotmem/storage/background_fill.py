@@ -237,3 +237,5 @@ class RowFill:
         self._cv = threading.Condition()
         self._thread = None
         self.state[self.state == _FILLING] = _EMPTY
+        if self._handed_over and not self.done:  # the parent was running the synchronous load: run it here
+            self._hand_over()
