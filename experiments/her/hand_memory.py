@@ -25,6 +25,11 @@ and the clone / gcsl lines of the result files, placed at the frames of the memo
     python -m experiments.her.hand_memory plot docs/runs/hand_memory.jsonl \
         --runs "SAC s0=docs/runs/hand_reach-s0-out.json" "SAC s1=docs/runs/hand_reach-s1-out.json" \
         --png docs/img/hand_reach.png
+
+``curves`` draws GCSL result files, one line a seed, one colour a file::
+
+    python -m experiments.her.hand_memory curves "GCSL=docs/runs/hand43-gcsl-control.jsonl" \
+        "GCSL + GoalProposer=docs/runs/hand43-gcsl-propose.jsonl" --png docs/img/hand43_gcsl.png
 """
 from __future__ import annotations
 
@@ -254,9 +259,34 @@ def plot(runs: list[str], results: list[str], png: str) -> None:
     fig.savefig(png, dpi=110)
 
 
+def curves(results: list[str], png: str) -> None:
+    """Success against frames in all (the memory's rows), one line a seed, one colour a result file (an arm)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for colour, spec in zip(("tab:blue", "tab:orange", "tab:green", "tab:red"), results):
+        label, _, path = spec.rpartition("=")
+        rows = [json.loads(line) for line in open(path) if line.strip()]
+        for i, seed in enumerate(sorted({r["seed"] for r in rows})):
+            pts = sorted((r for r in rows if r["seed"] == seed), key=lambda r: r["round"])
+            ax.plot([r["memory_rows"] / 1000 for r in pts], [r["success"] for r in pts], color=colour, alpha=0.8,
+                    linestyle=("-", "--", ":")[i % 3], label=f"{label or path}, seed {seed}")
+    ax.axhline(0.9, color="black", linestyle="--", linewidth=1)
+    ax.set_xlabel("env frames in all (thousands; the first 10k random)")
+    ax.set_ylabel("evaluated success (100 episodes)")
+    ax.set_title("HandReach-v3, GCSL")
+    ax.set_ylim(-0.02, 1.0)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["cover", "clone", "gcsl", "plot"])
+    parser.add_argument("what", choices=["cover", "clone", "gcsl", "plot", "curves"])
     parser.add_argument("memories", nargs="*", help="HandReach memories (ZarrStorage paths); plot: result files")
     parser.add_argument("--horizon", type=int, nargs="+", default=[3], help="relabelling horizons (clone: each)")
     parser.add_argument("--steps", type=int, default=5000, help="Adam steps of the clone (a gcsl round: this many)")
@@ -285,6 +315,9 @@ def main(argv: list[str] | None = None) -> None:
 
     if args.what == "plot":
         plot(args.runs, args.memories + ([args.out] if args.out else []), args.png)
+        return
+    if args.what == "curves":  # memories: LABEL=RESULT_FILE of gcsl runs
+        curves(args.memories, args.png)
         return
     if not args.memories:
         parser.error(f"{args.what} needs at least one memory path")
