@@ -68,6 +68,29 @@ def test_rows_are_filled_chunk_by_chunk_and_the_asked_ones_first(store):
     assert torch.equal(out["action"][:, 0], -torch.arange(ROWS, dtype=torch.float32))
 
 
+@pytest.mark.parametrize("record", ['{"attributes": {"write_count": "many"}}', '[1, 2]', '{"attributes": 3}', "{"])
+def test_a_hostile_record_during_the_fill_hands_it_to_the_synchronous_load(store, record):
+    """A record that changes into something unexpected while rows are filled: the rest of the fill is the
+    synchronous load's (which checks the record and names what is wrong), never an error of its own."""
+    group = zarr.open_group(store, mode="r")
+    out = {"obs": torch.zeros(ROWS, 3)}
+    reads = ChunkReads({"obs": group["obs"]}, out, CHUNK, local_dir=store)
+    record_file = os.path.join(store, "zarr.json")
+
+    def synchronous():
+        raise ValueError("the synchronous load ran")
+
+    fill = RowFill(reads, ROWS, record_file=record_file, max_size=2 * ROWS, fallback=synchronous, start=False)
+    fill.ensure(np.array([0]))  # the record as written: chunk 0 filled from its file
+    assert torch.equal(out["obs"][:CHUNK, 0], torch.arange(CHUNK, dtype=torch.float32))
+    with open(record_file, "w") as f:
+        f.write(record)
+    for _ in range(2):  # that read, and every later one
+        with pytest.raises(ValueError, match="the synchronous load ran"):
+            fill.ensure(np.array([500]))
+    assert not bool(out["obs"][CHUNK:, 0].any())  # nothing read past chunk 0
+
+
 def test_a_reader_opens_without_reading_and_serves_only_filled_rows(store):
     """The open reads no chunk; every read after it (a sample, TorchRL's ``_storage``) sees whole, filled rows."""
     gen = torch.Generator().manual_seed(0)

@@ -199,12 +199,13 @@ class RowFill:
             raise _HandOver from None
         ident = (st.st_ino, st.st_size, st.st_mtime_ns)
         if ident != self._last_record:
-            try:
+            try:  # anything unexpected in the record is the synchronous load's to check and name
                 with open(os.open(self.record_file, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))) as f:
-                    attrs = json.load(f).get("attributes", {})
-            except (OSError, ValueError):
+                    attrs = json.load(f)["attributes"]
+                overwrites = bool(attrs.get("journal")) or int(attrs.get("write_count", 0)) > self.max_size
+            except Exception:  # noqa: BLE001
                 raise _HandOver from None
-            if attrs.get("journal") or int(attrs.get("write_count", 0)) > self.max_size:
+            if overwrites:
                 raise _HandOver
             self._last_record = ident
         return ident

@@ -217,7 +217,7 @@ class RamMirror:
         fill = self.fill
         if fill is not None:
             n = self.max_dim0 if n0 is None else int(n0)
-            rows = _first_dim_rows(index, n)
+            rows = _first_dim_rows(index, n, self.chunk_rows)
             if rows is None:
                 self.finish_fill()
             else:
@@ -384,12 +384,16 @@ class RamMirror:
         return True
 
 
-def _first_dim_rows(index, n: int) -> np.ndarray | None:
-    """The first-dimension rows an index of ``n`` rows reads (``None``: an index this does not resolve)."""
+def _first_dim_rows(index, n: int, every: int) -> np.ndarray | None:
+    """First-dimension rows of every chunk (of ``every`` rows) an index of ``n`` rows reads (``None``: an index
+    this does not resolve)."""
     if isinstance(index, (int, np.integer)) and not isinstance(index, bool):
         return np.array([int(index) + n if index < 0 else int(index)])
     if isinstance(index, slice):
-        return np.arange(*index.indices(n))
+        start, stop, step = index.indices(n)
+        if step == 1:  # one row a chunk is enough
+            return np.arange(start, stop, every) if stop <= start else np.r_[np.arange(start, stop, every), stop - 1]
+        return np.arange(start, stop, step)
     if isinstance(index, torch.Tensor) and not index.dtype.is_floating_point and index.dtype != torch.bool:
         rows = index.reshape(-1).cpu().numpy().astype(np.int64)
         return np.where(rows < 0, rows + n, rows)
