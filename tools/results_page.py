@@ -387,6 +387,7 @@ HAND_SAC = Runs("SAC+HER from scratch", "hand_reach-s{}-out", seeds=(0, 1))
 #: without GoalProposer goals in half the collection episodes; then a second run on each first run's memory
 HAND43_GCSL_CONTROL = HandArm("GCSL", "hand43-gcsl-control.jsonl", "gcsl", seeds=(0, 1, 2))
 HAND43_GCSL_PROPOSE = HandArm("GCSL + GoalProposer", "hand43-gcsl-propose.jsonl", "gcsl", seeds=(0, 1, 2))
+HAND43_GCSL_QUARTER = HandArm("GCSL + GoalProposer, rate 0.25", "hand43-gcsl-propose25.jsonl", "gcsl", seeds=(0, 1, 2))
 HAND43_SECOND = {"control": HandArm("second run, GCSL", "hand43-gcsl-second-control.jsonl", "gcsl", seeds=(0, 1, 2)),
                  "propose": HandArm("second run, GCSL + GoalProposer", "hand43-gcsl-second-propose.jsonl", "gcsl",
                                     seeds=(0, 1, 2))}
@@ -890,6 +891,27 @@ def hand_gcsl_proposer(root: Path) -> str:
     return head + "\n\n" + t
 
 
+def hand_gcsl_proposer_quarter(root: Path) -> str:
+    """Issue 43 on HandReach: the second proposer arm, fixed before it ran (a quarter of the collection episodes),
+    against the same control."""
+    control, quarter = HAND43_GCSL_CONTROL.read(root), HAND43_GCSL_QUARTER.read(root)
+    c = compare(quarter, control)
+    half = HAND43_GCSL_PROPOSE.read(root)
+    head = (f"**At {_frames_of(quarter)} frames in all: {slash(quarter.values)} with the proposer in a quarter of "
+            f"the collection episodes, {slash(control.values)} without** (and {slash(half.values)} in half of them, "
+            f"above). Run-level: {run_level(c)}. Episode-level: {episode_level(c)}.")
+    cols = [10000, 30000, 50000, 75000, 100000, 125000, 150000]
+    rows = []
+    for seed in HAND43_GCSL_QUARTER.seeds:
+        rounds = {d["memory_rows"]: d for d in HAND43_GCSL_QUARTER.rounds(root, seed)}
+        rows.append([f"{HAND43_GCSL_QUARTER.label}, seed {seed}",
+                     *[f2(rounds[f]["success"]) if f in rounds else "-" for f in cols],
+                     f2(max(d["success"] for d in rounds.values())), cpu(rounds[max(rounds)]["cpu_s"])])
+    t = table(["frames in all (10k random first)", *[kf(f) for f in cols], "best",
+               "CPU-s of the rounds (the random collection not counted)"], rows)
+    return head + "\n\n" + t
+
+
 def hand_gcsl_second(root: Path) -> str:
     """Issue 43 goal 3 on HandReach: a second run (fresh networks) on each first run's memory: the new frames it
     needed to reach the first run's final success (the first run: 150k frames in all)."""
@@ -913,6 +935,7 @@ def hand_gcsl_second(root: Path) -> str:
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "summary": summary,
     "hand_gcsl_proposer": hand_gcsl_proposer,
+    "hand_gcsl_proposer_quarter": hand_gcsl_proposer_quarter,
     "hand_gcsl_second": hand_gcsl_second,
     "pnp_proposer_pilot": pnp_proposer_pilot,
     "hand_proposer_pilot": hand_proposer_pilot,
