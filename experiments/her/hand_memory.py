@@ -29,7 +29,7 @@ and the clone / gcsl lines of the result files, placed at the frames of the memo
 ``curves`` draws GCSL result files, one line a seed, one colour a file::
 
     python -m experiments.her.hand_memory curves "GCSL=docs/runs/hand43-gcsl-control.jsonl" \
-        "GCSL + GoalProposer=docs/runs/hand43-gcsl-propose.jsonl" \
+        "GCSL + GoalProposer, rate 0.5=docs/runs/hand43-gcsl-propose.jsonl" \
         "GCSL + GoalProposer, rate 0.25=docs/runs/hand43-gcsl-propose25.jsonl" --png docs/img/hand43_gcsl.png
 """
 from __future__ import annotations
