@@ -59,7 +59,10 @@ from .goal_index import GoalIndex, RowFilter
 from .goal_index.metrics import GoalMetric, get_metric
 from .memory_source import MemorySource
 
-__all__ = ["GoalProposer"]
+__all__ = ["CANDIDATES", "GoalProposer"]
+
+#: where a proposal's candidates come from (:class:`GoalProposer`'s ``candidates``)
+CANDIDATES = ("uniform", "near_goal")
 
 
 class GoalProposer(Transform):
@@ -68,7 +71,9 @@ class GoalProposer(Transform):
     At every reset of an env (all of them, or the rows a batched env's ``"_reset"`` flags), with
     probability ``rate`` the episode's goal becomes a proposed one:
 
-    1. ``num_candidates`` rows are drawn uniformly among the memory's rows (those ``filter`` keeps);
+    1. ``num_candidates`` rows are drawn uniformly among the memory's rows (those ``filter`` keeps),
+       or, with ``candidates="near_goal"``, the ``num_candidates`` stored achieved goals nearest the
+       goal the env handed this episode (exact recall): the frontier in the direction of the task;
     2. for each candidate's achieved goal, the distance to its ``k``-th nearest stored achieved goal
        is found (exact, :meth:`GoalIndex.search <torchrl_robotmem.goal_index.GoalIndex.search>`);
     3. the candidate with the largest such distance (the lowest density) is the goal.
@@ -102,6 +107,10 @@ class GoalProposer(Transform):
             Default: ``"euclidean"``.
         filter (RowFilter or mapping, optional): which rows may be proposed and count in the density
             (e.g. ``{"env": "FetchPush-v4"}``). Default: every row.
+        candidates (str): where the candidates come from: ``"uniform"`` (drawn among every stored row,
+            MEGA) or ``"near_goal"`` (the stored achieved goals nearest the env's goal of the episode,
+            so the proposal is the sparsest remembered goal on the way to the task's own goals).
+            Default: ``"uniform"``.
         seed (int, optional): seeds the transform's own generator (candidate draws and the ``rate``
             coin). Default: ``None`` (drawn from torch's global generator at the first proposal).
 
@@ -127,6 +136,7 @@ class GoalProposer(Transform):
         success_key: NestedKey = "is_success",
         metric: str | GoalMetric | Callable = "euclidean",
         filter: RowFilter | Mapping[str, Any] | None = None,
+        candidates: str = "uniform",
         seed: int | None = None,
     ) -> None:
         for name, value, low in (("num_candidates", num_candidates, 1), ("k", k, 1), ("warmup_rows", warmup_rows, 0)):
@@ -134,6 +144,8 @@ class GoalProposer(Transform):
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}.")
         if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0.0 <= float(rate) <= 1.0:
             raise ValueError(f"rate must be a probability in [0, 1], got {rate!r}.")
+        if candidates not in CANDIDATES:
+            raise ValueError(f"candidates must be one of {CANDIDATES}, got {candidates!r}.")
         if not isinstance(env, str) or not env:
             raise TypeError(f"env must be the task's id (e.g. 'FetchPickAndPlace-v4'), got {env!r}.")
         in_key, achieved_key = unravel_key(in_key), unravel_key(achieved_key)
@@ -147,6 +159,7 @@ class GoalProposer(Transform):
         self.achieved_key = achieved_key
         self.reward_key, self.success_key = unravel_key(reward_key), unravel_key(success_key)
         self.metric = metric
+        self.candidates = candidates
         self.seed = seed
         self._reward = GoalRewardFn(env, achieved_goal_key=achieved_key, desired_goal_key=in_key)
         self._generator: torch.Generator | None = None
@@ -175,24 +188,53 @@ class GoalProposer(Transform):
             self._index = GoalIndex.for_storage(self.storage, goal_key=self.goal_key, metric=self._metric_obj)
         return self._index
 
-    def propose(self, n: int) -> torch.Tensor | None:
+    def propose(self, n: int, near: torch.Tensor | None = None) -> torch.Tensor | None:
         """``n`` proposed goals ``[n, goal_dim]`` (lowest density among fresh candidates each), or ``None``.
 
         ``None`` while the memory holds fewer than ``warmup_rows`` rows (or none ``filter`` keeps).
+
+        Args:
+            n (int): goals to propose.
+            near (torch.Tensor, optional): ``[n, goal_dim]`` goals the env handed the episodes: with
+                ``candidates="near_goal"``, the candidates of the i-th proposal are the stored achieved
+                goals nearest ``near[i]`` (required then, ignored otherwise).
+
+        Example:
+            >>> import tempfile, torch
+            >>> from torchrl.data import TensorDictReplayBuffer
+            >>> from tensordict import TensorDict
+            >>> from torchrl_robotmem import GoalProposer, ZarrStorage
+            >>> rb = TensorDictReplayBuffer(storage=ZarrStorage(tempfile.mkdtemp() + "/m.zarr", 100, goal_conditioned=False))
+            >>> goals = torch.cat([torch.zeros(20, 3), torch.tensor([[1.0, 0, 0], [0, 0, 5.0]])])
+            >>> _ = rb.extend(TensorDict({("next", "achieved_goal"): goals}, [22]))
+            >>> near = GoalProposer(rb, "FetchReach-v4", k=2, num_candidates=3, candidates="near_goal", warmup_rows=0)
+            >>> near.propose(1, near=torch.tensor([[2.0, 0, 0]]))  # the sparse goal on the way, not the far one
+            tensor([[1., 0., 0.]])
         """
         if n == 0 or len(self._source) < max(self.warmup_rows, 1):
             return None
         start = time.perf_counter()
         try:
-            rows = self._candidates(n * self.num_candidates)
-            if rows is None:
-                return None
-            goals = self._source.column(self.goal_key)[rows].reshape(n * self.num_candidates, -1).float()
+            if self.candidates == "near_goal":
+                if near is None or near.shape[0] != n:
+                    raise ValueError(f"candidates='near_goal' proposes near the env's goals: pass near of shape "
+                                     f"[{n}, goal_dim], got {None if near is None else list(near.shape)}.")
+                _, rows, found = self.index.search(near.reshape(n, -1).float(), self.num_candidates, filter=self.filter)
+                if not bool(found.any()):
+                    return None
+                # a missing neighbour (fewer stored rows than candidates) repeats the nearest one
+                rows = torch.where(found, rows, rows[:, :1])
+            else:
+                rows = self._candidates(n * self.num_candidates)
+                if rows is None:
+                    return None
+            width = rows.numel() // n
+            goals = self._source.column(self.goal_key)[rows.reshape(-1)].reshape(n * width, -1).float()
             # k + 1: a candidate is a stored row itself, at distance 0 from its own goal
             dist, _, mask = self.index.search(goals, self.k + 1, filter=self.filter)
             kth = torch.where(mask, dist, torch.full_like(dist, float("inf"))).amax(-1)  # too few rows: sparse
-            best = kth.reshape(n, self.num_candidates).argmax(-1)
-            return goals.reshape(n, self.num_candidates, -1)[torch.arange(n), best]
+            best = kth.reshape(n, width).argmax(-1)
+            return goals.reshape(n, width, -1)[torch.arange(n), best]
         finally:
             self.seconds += time.perf_counter() - start
 
@@ -226,7 +268,7 @@ class GoalProposer(Transform):
         if rows.numel():
             coin = torch.rand(rows.numel(), generator=self._rng()) < self.rate
             chosen = rows[coin]
-            proposed = self.propose(chosen.numel())
+            proposed = self.propose(chosen.numel(), near=flat[chosen])
             if proposed is not None:
                 flat[chosen] = proposed.to(flat.dtype)
                 self.proposed += chosen.numel()
@@ -270,4 +312,5 @@ class GoalProposer(Transform):
     def __repr__(self) -> str:
         memory = self.memory if isinstance(self.memory, str) else type(self.memory).__name__
         return (f"{type(self).__name__}(memory={memory!r}, env={self.env_id!r}, num_candidates={self.num_candidates}, "
-                f"k={self.k}, rate={self.rate}, warmup_rows={self.warmup_rows})")
+                f"k={self.k}, rate={self.rate}, warmup_rows={self.warmup_rows}"
+                + (f", candidates={self.candidates!r})" if self.candidates != "uniform" else ")"))

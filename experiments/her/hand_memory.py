@@ -160,9 +160,14 @@ def store_rows(memory: TensorDictReplayBuffer, rows: dict[str, torch.Tensor]) ->
                              batch_size=[rows["obs"].shape[0]]))
 
 
+def episode_seed(seed: int, r: int, e: int) -> int:
+    """The reset seed of collection episode ``e`` of round ``r`` (its env goal: the proposer's ``near``)."""
+    return 1_000_000 * (seed + 1) + 100 * r + e
+
+
 def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, seed: int, log,
          episodes: int = 100, memory_out: str | None = None, propose_rate: float = 0.0, stop_at: float | None = None,
-         ) -> list[dict]:
+         candidates: str = "uniform") -> list[dict]:
     """Clone, then ``rounds`` of: 100 noisy episodes with the clone, added to the data, cloned further.
 
     Each clone is evaluated on ``episodes`` deterministic episodes (the goals of :func:`eval_goals`).
@@ -176,6 +181,8 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
             of lowest density among 100 candidates, MEGA) instead of the env's own; ``0`` (the control):
             every episode pursues the env's goal. Evaluation always uses the env's goals.
         stop_at: stop after the first evaluation at or above this success (a second run: frames it needed).
+        candidates: the proposer's candidates: ``"uniform"`` (among every stored row) or ``"near_goal"``
+            (the 100 stored achieved goals nearest the goal the env drew for the episode).
     """
     torch.manual_seed(seed)
     gen, rng = torch.Generator().manual_seed(seed), np.random.default_rng(seed)
@@ -190,7 +197,7 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
     if propose_rate:
         if memory is None:
             raise ValueError("propose_rate > 0 proposes from memory_out: give --memory-out")
-        proposer = GoalProposer(memory, ENV, rate=propose_rate, warmup_rows=0, seed=seed)
+        proposer = GoalProposer(memory, ENV, rate=propose_rate, warmup_rows=0, seed=seed, candidates=candidates)
     coin = torch.Generator().manual_seed(seed + 1)
     results, new_frames, cpu = [], 0, time.process_time()
     for r in range(rounds + 1):
@@ -201,19 +208,22 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
                         "round": r, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
                         "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
                         "propose_rate": propose_rate, "outcomes": "".join("1" if o else "0" for o in outcomes),
-                        **({"proposed": proposer.proposed, "propose_s": round(proposer.seconds, 2)} if proposer else {})})
+                        **({"proposed": proposer.proposed, "propose_s": round(proposer.seconds, 2),
+                            "candidates": candidates} if proposer else {})})
         log(results[-1])
         if r == rounds or (stop_at is not None and success >= stop_at):
             break
         proposed = 0
         if proposer is not None:
             chosen = torch.rand(100, generator=coin) < propose_rate
-            goals = proposer.propose(int(chosen.sum()))
+            near = torch.stack([torch.as_tensor(env.reset(seed=episode_seed(seed, r, e))[0]["desired_goal"]).float()
+                                for e in range(100) if chosen[e]]) if bool(chosen.any()) else None
+            goals = proposer.propose(int(chosen.sum()), near=near)
             proposed = 0 if goals is None else goals.shape[0]
             proposer.proposed += proposed
         for e in range(100):
             goal = goals[int(chosen[:e].sum())] if proposed and chosen[e] else None
-            rows, _ = rollout(env, model, 1_000_000 * (seed + 1) + 100 * r + e, sigma, rng, goal=goal)
+            rows, _ = rollout(env, model, episode_seed(seed, r, e), sigma, rng, goal=goal)
             rows["ep"] = torch.full((50,), int(data["ep"].max()) + 1)
             data = {k: torch.cat([data[k], rows[k]]) for k in data}
             if memory is not None:
@@ -298,6 +308,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="evaluation episodes of a clone (cover: twice as many goals)")
     parser.add_argument("--memory-out", default=None,
                         help="gcsl: a new memory of every row the rounds learn from (the proposer's; a second run's)")
+    parser.add_argument("--candidates", choices=["uniform", "near_goal"], default="uniform",
+                        help="gcsl: the proposer's candidates (GoalProposer(candidates=...))")
     parser.add_argument("--propose-rate", type=float, default=0.0,
                         help="gcsl: share of collection episodes that pursue a GoalProposer's goal (0: the control)")
     parser.add_argument("--stop-at", type=float, default=None, help="gcsl: stop at this evaluated success")
@@ -327,7 +339,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     for horizon in args.horizon:
         gcsl(args.memories, horizon, args.steps, args.rounds if args.what == "gcsl" else 0, args.sigma, args.seed, log,
-             episodes=args.episodes, memory_out=args.memory_out, propose_rate=args.propose_rate, stop_at=args.stop_at)
+             episodes=args.episodes, memory_out=args.memory_out, propose_rate=args.propose_rate, stop_at=args.stop_at,
+             candidates=args.candidates)
 
 
 if __name__ == "__main__":

@@ -62,6 +62,41 @@ def test_proposals_are_achieved_goals_of_the_sparse_region(clustered):
             .norm(dim=-1) > 0.09).all()
 
 
+def test_near_goal_proposes_the_sparsest_remembered_goal_on_the_way_to_the_env_goal(clustered):
+    """candidates="near_goal": only the stored goals nearest the env's goal compete; the sparsest of them wins."""
+    path, center = clustered
+    stored = ZarrStorage(path, read_only=True)["next", "achieved_goal"][:1000]
+    sparse = stored[800:]
+    # env goals just past two outliers on opposite sides: each proposal must come from its own side
+    targets = torch.stack([center + 1.5 * (sparse[0] - center), center + 1.5 * (sparse[1] - center)])
+    proposer = GoalProposer(path, ENV, num_candidates=10, k=5, warmup_rows=10, seed=1, candidates="near_goal")
+    proposed = proposer.propose(2, near=targets)
+    assert _stored(proposed, stored)
+    nearest = (stored[None] - targets[:, None]).norm(dim=-1).topk(10, largest=False).indices  # the candidates
+    for i in range(2):
+        assert any(torch.equal(proposed[i], stored[j]) for j in nearest[i])
+        assert (proposed[i] - center).norm() > 0.09  # from the sparse side, not the cluster
+    assert (proposed[0] - proposed[1]).norm() > 0.1  # each toward its own env goal
+    with pytest.raises(ValueError, match="near of shape"):
+        proposer.propose(2)
+    with pytest.raises(ValueError, match="candidates must be one of"):
+        GoalProposer(path, ENV, candidates="nearest")
+
+
+def test_near_goal_in_an_env_proposes_near_each_reset_goal(reach_memory):
+    proposer = GoalProposer(reach_memory, ENV, num_candidates=5, k=3, warmup_rows=100, seed=2, candidates="near_goal")
+    env = make_env(ENV, 2, seed=11, transforms=[proposer])
+    plain = make_env(ENV, 2, seed=11)
+    own = plain.reset()["desired_goal"]  # the goals the env draws (the proposer replaces them)
+    episode = env.rollout(3)
+    stored = ZarrStorage(reach_memory, read_only=True)["next", "achieved_goal"][:400]
+    goals = episode["desired_goal"][:, 0]
+    nearest = (stored[None] - own[:, None]).norm(dim=-1).topk(5, largest=False).indices
+    for i in range(2):
+        assert any(torch.equal(goals[i], stored[j]) for j in nearest[i])
+    assert proposer.proposed == 2
+
+
 def test_no_proposal_below_warmup_and_rate_zero_keeps_the_env_goals(clustered):
     path, _ = clustered
     assert GoalProposer(path, ENV, warmup_rows=1001).propose(3) is None
