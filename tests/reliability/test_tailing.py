@@ -90,3 +90,45 @@ def test_reader_sees_only_complete_rows_while_a_writer_appends_and_wraps(tmp_pat
     print(f"tailing: refreshes={refreshes} rows_checked={rows_checked} write_count={last_w} "
           f"wraps={last_w // MAX_SIZE} rows newer than the reader's write_count={newer_rows}")
     assert refreshes >= 3
+
+
+def test_an_in_place_commit_inside_a_reader_load_is_read_again(tmp_path, monkeypatch):
+    """A journalled in-place commit that starts and ends inside a reader's load is caught.
+
+    It leaves ``len``, ``cursor`` and ``write_count`` as they were, so the record before the load
+    equals the record after it but for its ``overwrites`` count; a load that read one column
+    before that commit and the others after it holds torn rows, which the reader must read again.
+    The tear is made by construction: the load is run to its end, the writer rewrites rows 0..9 in
+    place and commits, and the reader's ``observation`` column of those rows is then given the new
+    values (what a load reading that column after the commit gets).
+    """
+    from torchrl_robotmem.storage.mirror import RamMirror
+
+    path = tmp_path / "inplace.zarr"
+    writer = ZarrStorage(path, 100, chunk_rows=10)
+    writer.set(slice(0, 40), _gen.make_rows(torch.arange(40)))
+    writer.flush()
+    load = RamMirror.load
+    overlapped = []
+
+    def load_overlapped_by_a_commit(self, group, n0, *, store_path, read_only, local_dir=None):
+        left = load(self, group, n0, store_path=store_path, read_only=read_only, local_dir=local_dir)
+        if read_only and not overlapped:
+            overlapped.append(n0)
+            writer.set(slice(0, 10), _gen.make_rows(torch.arange(100, 110)), set_cursor=False)
+            writer.flush()  # a journalled commit: rows 0..9 were committed
+            self.columns["observation"][:10] = _gen.make_rows(torch.arange(100, 110))["observation"]
+        return left
+
+    monkeypatch.setattr(RamMirror, "load", load_overlapped_by_a_commit)
+    try:
+        with ZarrStorage(path, read_only=True) as reader:  # a writer is open: no seal, the rows are loaded
+            assert overlapped == [40]
+            assert len(reader) == 40
+            expected = torch.cat([torch.arange(100, 110), torch.arange(10, 40)])
+            bad = torn_or_wrong(reader[:40], expected)
+            assert not bad, f"torn or stale rows after a load an in-place commit overlapped: {bad}"
+    finally:
+        writer.close()
+    with ZarrStorage(path, read_only=True) as again:  # and the store holds the rewrite
+        assert not torn_or_wrong(again[:40], torch.cat([torch.arange(100, 110), torch.arange(10, 40)]))

@@ -42,7 +42,7 @@ from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
 from .fast_write import write_chunks
 from .format import writing_config, writing_handles
 from .journal import commit as commit_protocol
-from .journal import replay_journal
+from .journal import OVERWRITES, replay_journal
 
 __all__ = ["CommitEngine"]
 
@@ -95,6 +95,9 @@ class CommitEngine:
         self.error: BaseException | None = None
         self.committed_len = 0  # committed length (transitions)
         self.committed_write_count = 0  # write count of the last commit record
+        # journalled commits so far (the record's ``overwrites``): a reader tells by it that rows it was
+        # loading were rewritten in place, which leaves every other field of the record as it was
+        self.overwrites = 0
         self.worker_path = worker_path
         self.worker_fault: str | None = None  # why this engine stopped using its worker
         self._worker: CommitWorker | None = None  # the worker this store is open in
@@ -103,9 +106,10 @@ class CommitEngine:
         self._route_lock = threading.RLock()  # the worker starts once the open has read (MemoryStore.open_arrays)
 
     def set_committed(self, attrs: dict) -> None:
-        """Records the commit record found on disk (at open): ``len`` and ``write_count``."""
+        """Records the commit record found on disk (at open): ``len``, ``write_count`` and ``overwrites``."""
         self.committed_len = int(attrs.get("len", 0))
         self.committed_write_count = int(attrs.get("write_count", 0))
+        self.overwrites = int(attrs.get(OVERWRITES, 0))
 
     # -- bookkeeping (called under ``cv``) ----------------------------------------
 
@@ -222,6 +226,7 @@ class CommitEngine:
         with self.cv:
             self.committed_len = max(self.committed_len, int(attrs.get("len", 0)))
             self.committed_write_count = max(self.committed_write_count, int(attrs.get("write_count", 0)))
+            self.overwrites = max(self.overwrites, int(attrs.get(OVERWRITES, 0)))
         for path in [p for p in self.arrays if p.startswith("_journal/")]:
             del self.arrays[path]  # the worker may have recreated (or half-created) them
 
@@ -317,6 +322,8 @@ class CommitEngine:
             snapshots = {c: mirror.copy_chunk(c) for c in chunks}
             taken = {c: self.dirty.pop(c) for c in chunks}
             meta = self.record() if everything else None
+            if overwrite:  # every journalled commit changes the record, even one that rewrites rows in place
+                meta[OVERWRITES] = self.overwrites + 1
             if everything:
                 self.meta_dirty = False
                 self.first_dirty_time = None
@@ -356,6 +363,7 @@ class CommitEngine:
             if meta is not None:
                 self.committed_len = int(meta["len"])
                 self.committed_write_count = int(meta["write_count"])
+                self.overwrites = int(meta.get(OVERWRITES, self.overwrites))
                 self.flush_done = max(self.flush_done, target)
             self.cv.notify_all()
 

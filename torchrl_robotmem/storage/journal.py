@@ -33,10 +33,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["commit", "journal_chunks", "replay_journal"]
+__all__ = ["OVERWRITES", "PREFIX", "commit", "journal_chunks", "replay_journal"]
 
 #: the folder of a pending commit's chunks (``_journal/<array path>``)
 PREFIX = "_journal/"
+#: the record's count of journalled commits: a write in place changes no other field of the record, and
+#: a reader whose load a journalled commit overlapped tells by this count that it must read again
+OVERWRITES = "overwrites"
 
 
 def commit(group: Any, arrays: dict[str, Any], write_chunks: Callable[..., None],

@@ -37,7 +37,7 @@ from . import _backend
 from .background_fill import RowFill
 from .fast_read import ChunkReads, read_into
 from .format import read_rows
-from .journal import PREFIX, journal_chunks
+from .journal import OVERWRITES, PREFIX, journal_chunks
 from .layout import PackedLayout
 from .rowfile import RowFile, rows_layout
 from .tags import TAG_KEYS, open_episode_ends
@@ -355,7 +355,9 @@ class RamMirror:
         An overwrite (a ring wrapping around, a journalled in-place write)
         replaces one array's chunk at a time, so a read that overlapped it can
         return rows whose columns come from two writes. When the commit record
-        changed during the load and an overwrite was possible, each chunk is read
+        changed during the load and an overwrite was possible (a wrapped ring, a
+        journal pending before or after, or a journalled commit in between, which
+        the record's ``overwrites`` count tells), each chunk is read
         until the record is the same before and after (from the journal while
         one names the chunk): every row is whole, possibly newer than ``len``.
         Returns whether it read anything.
@@ -365,7 +367,8 @@ class RamMirror:
 
         after = now()
         wrapped = int(after.get("write_count", 0)) > self.max_size
-        if after == record or not (wrapped or record.get("journal") or after.get("journal")):
+        in_place = after.get(OVERWRITES, 0) != record.get(OVERWRITES, 0)  # a journalled commit during the load
+        if after == record or not (wrapped or in_place or record.get("journal") or after.get("journal")):
             return False
         rows = self.chunk_rows
         for lo in range(0, n0, rows):

@@ -114,7 +114,8 @@ def _size_problems(attrs: dict) -> list[Problem]:
     if not is_int(max_size) or max_size < 1:
         out.append(_bad("max_size", f"must be a positive integer, got {max_size!r}"))
         max_size = None
-    for key, lo, default in (("ndim", 1, 1), ("write_count", 0, 0), ("episode_next", 0, 0), ("runs", 0, 0)):
+    for key, lo, default in (("ndim", 1, 1), ("write_count", 0, 0), ("episode_next", 0, 0), ("runs", 0, 0),
+                             ("overwrites", 0, 0)):
         v = attrs.get(key, default)
         if not is_int(v) or v < lo:
             out.append(_bad(key, f"must be an integer >= {lo}, got {v!r}"))
