@@ -41,8 +41,8 @@ from . import _backend
 from ._commit_worker import CommitWorker, CommitWorkerError, CommitWorkerGone
 from .fast_write import write_chunks
 from .format import writing_config, writing_handles
-from .journal import commit as commit_protocol
 from .journal import OVERWRITES, replay_journal
+from .journal import commit as commit_protocol
 
 __all__ = ["CommitEngine"]
 
