@@ -18,7 +18,7 @@ import zarr
 from tensordict import TensorDict
 
 from torchrl_robotmem import ZarrStorage
-from torchrl_robotmem.storage import integrity, loader
+from torchrl_robotmem.storage import handle, integrity
 from torchrl_robotmem.storage.fast_read import ChunkPlan, read_into
 from torchrl_robotmem.storage.integrity import IntegrityError
 from torchrl_robotmem.storage.rowfile import remove_rows
@@ -164,7 +164,7 @@ def test_chunk_gone_after_the_listing_is_an_error_not_zeros(tmp_path, monkeypatc
         return out
 
     monkeypatch.setattr(integrity, "check_open", then_remove)
-    assert loader.integrity is integrity
+    assert handle.integrity is integrity  # the module the open checks through
     with pytest.raises(IntegrityError, match=r"array 'next/reward' chunk 3 \(next/reward/c/3/0, rows 192-255\): "
                                              r"chunk file missing"):
         ZarrStorage(path, read_only=read_only)

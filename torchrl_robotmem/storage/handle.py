@@ -1,8 +1,10 @@
-"""The store handle: a store's path, its Zarr store and group, the writer lock, and the in-process writer handover.
+"""The store handle: the one place a store is opened: its path, Zarr store and group, writer lock and record.
 
 A :class:`StoreHandle` opens a store (local directory, ``*.zip``, in-memory or
-URL), takes the writer lock of a writable one, checks the format marker and
-creates a new store's commit record. A store has one writer: within a process,
+URL), takes the writer lock of a writable one, checks the format marker,
+creates a new store's commit record and reads and checks the record of an
+existing one (:meth:`StoreHandle.open_record`; a reader's ``refresh``:
+:meth:`StoreHandle.reopen_record`). A store has one writer: within a process,
 a new writable handle on the same store takes the writer over from the earlier
 one (:meth:`StoreHandle.claim`), which is flushed and becomes a read-only
 snapshot, and hands it back if the newer one fails to open
@@ -29,7 +31,8 @@ import torchrl
 from .._version import __version__
 from . import _backend, integrity, lifecycle
 from .errors import IntegrityError
-from .format import BOUNDED_FORMAT, FORMAT_MARKER, FORMAT_VERSION, MARKER, UNBOUNDED
+from .format import BOUNDED_FORMAT, FORMAT_MARKER, FORMAT_VERSION, MARKER, UNBOUNDED, writing_config
+from .journal import replay_journal
 
 #: the rows a new memory without a declared capacity starts with (at its first write: one chunk, at least)
 UNBOUNDED_START = 1024
@@ -83,7 +86,7 @@ class StoreHandle:
     def open(self) -> None:
         """Opens the store and its group; a writable local store takes the writer lock first."""
         # the columns' chunk folders are walked for links only by an open that reads them (MemoryStore.open_rows,
-        # loader.open_record); a writer's writes look at each folder they go into (storage/contained.py), which
+        # StoreHandle.open_record); a writer's writes look at each folder they go into (storage/contained.py), which
         # also removes the partial files a writer killed mid-chunk left there
         self.store, self.local_dir = _backend.open_store(
             self.path, read_only=self.read_only, storage_options=self.storage_options, chunk_links=False
@@ -156,6 +159,74 @@ class StoreHandle:
             self.group = _backend.create_group(self.store, record)
         else:  # an empty group (left by an older version killed while creating it)
             self.group.update_attributes(record)
+
+    # -- the commit record --------------------------------------------------------------------
+
+    def open_record(self, max_size: int | None, *, chunk_rows: int | None, ndim: int, on_damage: str,
+                    served: Callable[[dict], bool] | None = None, mapped: bool = False) -> dict:
+        """Opens the store (writing a new store's record), checks its format and integrity; returns the record.
+
+        Args:
+                max_size (int or None): the capacity asked for (``None``: the stored one).
+
+        Keyword Args:
+            chunk_rows (int or None): rows per chunk of a new store.
+            ndim (int): leading batch dimensions of a new store.
+            on_damage (str): ``"raise"`` or ``"warn"`` (see ``ZarrStorage``).
+            served (callable, optional): asked once the record is sane whether a sealed row file serves the
+                rows (then no chunk is listed: none is read). mapped (bool): the rows are mapped from a file.
+
+        Example:
+                >>> h = StoreHandle("memory://open-record-doc", read_only=False)
+            >>> h.open_record(4, chunk_rows=2, ndim=1, on_damage="raise")["len"]
+            0
+            >>> h.release()
+        """
+        if self.store is None:
+            self.open()
+        attrs = self.group.attrs.asdict() if self.group is not None else {}  # None: a new store
+        if attrs.get(FORMAT_MARKER) is None:
+            self.create(attrs, max_size, chunk_rows, ndim)
+            attrs = self.group.attrs.asdict()
+        self.check_format(attrs)
+        if not self.read_only and self.local_dir is not None:
+            _backend.remove_partial_files(self.local_dir, attrs)  # left by a writer killed mid-write
+        # before anything is read or written: a damaged store raises, naming the array and chunk
+        grows = max_size is not None and int(max_size) != attrs.get("max_size")
+        decode = not self.read_only and (bool(attrs.get("journal")) or grows)
+        if decode and self.local_dir is not None:  # every chunk below the length is read: walk their folders first
+            _backend.refuse_links(self.local_dir, self.path, chunks=None)
+        return integrity.check_open(self.group, attrs, store=self.store, local_dir=self.local_dir, path=self.path,
+                                    read_only=self.read_only, on_damage=on_damage, served=served, mapped=mapped,
+                                    decode=decode)
+
+    def reopen_record(self, *, on_damage: str, served: Callable[[dict], bool] | None = None,
+                      mapped: bool = False) -> tuple[Any, dict]:
+        """A reader's fresh group on its store and the checked record (``refresh``); the handle is unchanged.
+
+            Keyword Args:
+            on_damage (str): ``"raise"`` or ``"warn"``. served, mapped: as :meth:`open_record` takes them.
+        """
+        group = _backend.open_group(self.store, read_only=True)
+        attrs = group.attrs.asdict()
+        self.check_format(attrs)
+        attrs = integrity.check_open(group, attrs, store=self.store, local_dir=self.local_dir, path=self.path,
+                                     read_only=True, on_damage=on_damage, served=served, mapped=mapped)
+        return group, attrs
+
+    def pending_record(self, attrs: dict) -> dict | None:
+        """The record once a pending journal is applied, or ``None`` if none is pending.
+
+        A writer replays the journal on disk; a reader applies its record in RAM only
+        (its rows with :meth:`RamMirror.apply_journal <.mirror.RamMirror.apply_journal>`).
+        """
+        journal = attrs.get("journal")
+        if not journal:
+            return None
+        if not self.read_only:
+            with writing_config():
+                return replay_journal(self.group, journal)
+        return {**attrs, **journal["meta"]}
 
     # -- writer handover within a process ----------------------------------------------------
 

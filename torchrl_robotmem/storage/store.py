@@ -38,6 +38,18 @@ __all__ = ["GOAL_CONDITIONED", "MemoryStore"]
 GOAL_CONDITIONED = "goal_conditioned"
 
 
+def _use_worker(handle, *, background: bool, commit_process: bool | None) -> bool:
+    """Whether a writer's commits go through the commit worker process (local stores, background commits).
+
+    ``commit_process=None``: yes unless the environment sets ``TORCHRL_ROBOTMEM_COMMIT_PROCESS=0``.
+    """
+    if handle.read_only or not background or handle.local_dir is None:
+        return False
+    if commit_process is not None:
+        return bool(commit_process)
+    return os.environ.get("TORCHRL_ROBOTMEM_COMMIT_PROCESS", "1") != "0"
+
+
 class MemoryStore:
     """The handle and parts of one open store, and the writer position it records.
 
@@ -99,13 +111,51 @@ class MemoryStore:
         self.engine = CommitEngine(
             self.mirror, handle.group, record=record, commit_interval=commit_interval,
             background=background, name=str(handle.path),
-            worker_path=str(handle.local_dir) if loader.use_worker(handle, background=background,
-                                                                    commit_process=self.commit_process) else None,
+            worker_path=str(handle.local_dir) if _use_worker(handle, background=background,
+                                                             commit_process=self.commit_process) else None,
         )
         self.engine.handle = handle  # the worker gets a copy of its writer lock's descriptor
         self.schema = StoreSchema(handle, self.mirror, self.engine.arrays, compressor=codec[0], level=codec[1])
         self.sync_attrs(attrs)
         self.restored_writers = weakref.WeakSet()  # this session's state
+
+    def open_record(self, max_size: int | None, *, chunk_rows: int | None, ndim: int, device) -> dict:
+        """Opens the store and its row file; returns the checked commit record (a new store's, written).
+
+        Args:
+            max_size (int or None): the capacity asked for (``None``: the stored one, or none for a new store).
+
+        Keyword Args:
+            chunk_rows (int or None), ndim (int): of a new store. device: where the rows live.
+        """
+        self.handle.open()
+        self.prepare_rows(device)  # the rows' file: served without reading a chunk if sealed for the record
+        return self.handle.open_record(max_size, chunk_rows=chunk_rows, ndim=ndim, on_damage=self.on_damage,
+                                       served=self.open_rows, mapped=self.rows is not None)
+
+    def settle_record(self, attrs: dict) -> tuple[dict, bool]:
+        """The record whose rows are served: ``attrs`` with a pending journal applied; and whether one was."""
+        pending = self.handle.pending_record(attrs)
+        if pending is None:
+            return attrs, False
+        self.sync_attrs(pending)
+        return pending, True
+
+    def fill_rows(self, record: dict, attrs: dict, *, pending: bool) -> int:
+        """Fills the allocated rows for the record ``attrs`` (``record``: as opened); returns the transitions.
+
+        A row file sealed for the record holds them already; a large reader fills them in the background
+        (:func:`.loader.fill_in_background`); any other open reads them now (:func:`.loader.load_rows`) and
+        notes the episode ids and runs they use.
+        """
+        sealed = self.rows_sealed and not pending  # the row file holds the record's rows
+        if sealed or loader.fill_in_background(self.handle, self.mirror, record, attrs, on_damage=self.on_damage):
+            return int(attrs.get("len", 0))  # background: the rows are filled from the chunks as they are read
+        n = loader.load_rows(self.handle, self.mirror, record, attrs, on_damage=self.on_damage)
+        if n:  # a sealed file was closed cleanly: its record's counters are exact (and a reader filling in
+            # the background hands out no id)
+            self.note_stored(self.mirror.dim0(n))
+        return n
 
     def prepare_rows(self, device) -> None:
         """Makes the row file: a local store's ``_rows/``; a URL store's in its local cache folder
@@ -193,8 +243,41 @@ class MemoryStore:
             return False
         new = grown_size(mirror.max_dim0, need, mirror.chunk_rows or 1)
         with self.engine.cv:
-            loader.grow_arrays(self.handle, mirror, self.engine, new, write_count=self.write_count, ring=False)
+            self.grow(new, ring=False)
         return True
+
+    def grow(self, new_max: int, *, ring: bool = True) -> None:
+        """Grows a store that has not wrapped around to ``new_max`` transitions (arrays and record).
+
+        Raises, saying what to pass instead, on a smaller size, a reader or a store that wrapped around.
+
+        Args:
+            new_max (int): the capacity asked for.
+
+        Keyword Args:
+            ring (bool): the store is a ring (a memory without a declared capacity never wraps around).
+        """
+        handle, mirror, engine = self.handle, self.mirror, self.engine
+        old = mirror.max_size
+        if new_max < old:
+            raise ValueError(
+                f"The store at {handle.path!r} holds up to {old} rows; max_size={new_max} would "
+                f"shrink it. Shrinking is not supported: pass max_size={old} (or None)."
+            )
+        if handle.read_only:
+            raise ValueError(f"Cannot grow a store opened read_only (max_size={old}).")
+        if ring and (self.write_count > engine.committed_len or engine.committed_len > old):
+            raise ValueError(
+                f"The store at {handle.path!r} has wrapped around its max_size={old}; it cannot "
+                f"grow to {new_max} without reordering rows. Pass max_size={old} (or None)."
+            )
+        mirror.max_size = new_max
+        if mirror.schema is not None:
+            for path in mirror.schema:
+                arr = handle.group[path]
+                arr.resize((mirror.max_dim0, *arr.shape[1:]))
+        engine.reset_arrays()
+        engine.update_attrs({"max_size": new_max})
 
     def env_code(self, name: str, *, create: bool = False) -> int:
         """The integer code of an environment name (``create``: register a new one, writers only)."""
@@ -384,18 +467,24 @@ class MemoryStore:
     def snapshot(self) -> Callable[[], None]:
         """Saves what ``reopen`` changes; returns the function that puts it back."""
         saved = dict(vars(self))
-        restore = loader.snapshot(self.handle, self.mirror, self.tags, self.schema, self.engine)
+        group = self.handle.group
+        parts = [(part, dict(vars(part))) for part in (self.mirror, self.tags, self.schema)]
+        engine = self.engine
+        committed = {k: v for k, v in vars(engine).items() if k in ("group", "committed_len", "committed_write_count")}
 
-        def restore_all() -> None:
+        def restore() -> None:
             vars(self).update(saved)
-            restore()
+            self.handle.group = group
+            for part, state in parts:
+                vars(part).update(state)
+            vars(engine).update(committed)
 
-        return restore_all
+        return restore
 
     def reopen(self, max_size: int) -> dict | None:
         """Re-reads the committed record (a reader's refresh); ``None`` while the store holds no schema."""
-        group, attrs = loader.reopen_record(self.handle, on_damage=self.on_damage, served=self.open_rows,
-                                            mapped=self.rows is not None)
+        group, attrs = self.handle.reopen_record(on_damage=self.on_damage, served=self.open_rows,
+                                                 mapped=self.rows is not None)
         if attrs.get("schema") is None:
             return None
         self.handle.group = self.engine.group = group

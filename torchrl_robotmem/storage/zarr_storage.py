@@ -16,7 +16,8 @@ from tensordict import TensorDictBase
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
 
-from . import compat, lifecycle, loader
+from . import compat, lifecycle
+from .arguments import check_arguments
 from .checkpointer import ZarrCheckpointer
 from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
@@ -88,7 +89,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                  scratch_dir: str | os.PathLike | None = None, existsok: bool = False,
                  auto_cleanup: bool | None = None, consolidated: bool = False, cleanup_memmap: bool = True) -> None:
         compat.check_replaced_arguments(path, scratch_dir, existsok, auto_cleanup, consolidated, cleanup_memmap)
-        loader.check_arguments(path, max_size, chunk_rows=chunk_rows, commit_interval=commit_interval, ndim=ndim,
+        check_arguments(path, max_size, chunk_rows=chunk_rows, commit_interval=commit_interval, ndim=ndim,
                                shared_init=shared_init, compressor=compressor, compression_level=compression_level,
                                on_damage=on_damage, read_only=read_only, goal_conditioned=goal_conditioned)
         self._store = MemoryStore(path, read_only=read_only, storage_options=storage_options, on_damage=on_damage,
@@ -108,10 +109,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def _open(self, max_size, *, env, ndim, chunk_rows, device, compilable, commit_interval, background, codec) -> None:
         store, handle = self._store, self._handle
-        handle.open()
-        store.prepare_rows(device)  # the rows' file: served without reading a chunk if sealed for the record
-        attrs = loader.open_record(handle, max_size, chunk_rows=chunk_rows, ndim=ndim, on_damage=store.on_damage,
-                                   served=store.open_rows, mapped=store.rows is not None)
+        attrs = store.open_record(max_size, chunk_rows=chunk_rows, ndim=ndim, device=device)
         stored_max = int(attrs["max_size"])
         unbounded = bool(attrs.get(UNBOUNDED))
         if unbounded and max_size is not None:
@@ -127,7 +125,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                     commit_interval=commit_interval, background=background, codec=codec, attrs=attrs)
         self._own_writes = 0  # depth of this class's own writes (see _bump_mutation_revision)
         if max_size is not None and int(max_size) != stored_max:
-            loader.grow_arrays(handle, self._mirror, self._engine, int(max_size), write_count=store.write_count)
+            store.grow(int(max_size))
             self.max_size = self._mirror.max_size
         if self._mirror.schema is not None:
             self._load_rows(attrs)
@@ -142,27 +140,14 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def _load_rows(self, attrs: dict) -> None:
         record = attrs
-        pending = loader.pending_record(self._handle, attrs)
-        if pending is not None:
-            attrs = pending
-            self._store.sync_attrs(attrs)
-        sealed = self._store.rows_sealed and pending is None  # the row file holds the record's rows
+        attrs, pending = self._store.settle_record(attrs)
         self._allocate()
-        background = not sealed and loader.fill_in_background(self._handle, self._mirror, record, attrs,
-                                                               on_damage=self._store.on_damage)
-        if sealed or background:  # background: the rows are filled from the chunks as they are read
-            n = int(attrs.get("len", 0))
-        else:
-            n = loader.load_rows(self._handle, self._mirror, record, attrs, on_damage=self._store.on_damage)
-        n0 = self._mirror.dim0(n)
+        n = self._store.fill_rows(record, attrs, pending=pending)
         self.initialized = True
         self._len = n
         last = int(attrs.get("last_cursor", -1))
         if last >= 0:
             self._set_last_cursor(last)
-        if n and not sealed and not background:  # a sealed file was closed cleanly: its record's counters are
-            # exact (and a reader filling in the background hands out no id)
-            self._store.note_stored(n0)
         self._bump_own()
 
     @property
