@@ -238,6 +238,71 @@ def test_schema_mismatch_leaves_store_untouched(tmp_path, transitions, mutate, m
     rb.storage.close()
 
 
+@pytest.mark.parametrize(
+    "mutate, error, match",
+    [
+        (lambda td: td.set(("next", "reward"), td["next", "reward"].double()), ValueError, "'reward'.*float64"),
+        (lambda td: td.set(("next", "observation"), torch.zeros(td.shape[0], 24)), ValueError, "shape \\[24\\]"),
+        (lambda td: td.exclude(("next", "done")), KeyError, "missing keys.*done"),
+        (lambda td: td.set("episode", torch.zeros(td.shape[0], dtype=torch.long)), ValueError, "'episode' is a tag"),
+        (lambda td: td.set("env", torch.full((td.shape[0],), 5)), ValueError, "codes \\[5\\] unknown"),
+        (lambda td: td.set("_journal", torch.zeros(td.shape[0])), ValueError, "'_journal' is reserved"),
+    ],
+)
+def test_repeat_appends_still_check_every_batch(tmp_path, transitions, monkeypatch, mutate, error, match):
+    """The one-pass plan of a repeat append (planner._plan_append) hides no bad batch: it falls back to the
+    full checks, which name the key and leave the store as it was."""
+    from torchrl_robotmem.storage import planner
+
+    full = []
+    normalise = planner._normalise
+    monkeypatch.setattr(planner, "_normalise", lambda *a, **k: full.append(1) or normalise(*a, **k))
+    with ZarrStorage(tmp_path / "m.zarr", 100, chunk_rows=16, env="FetchPush-v4") as s:
+        rb = _rb(s)
+        for k in range(3):
+            rb.extend(transitions(10, start=10 * k))
+        assert len(full) == 1  # the first write is planned in full; the repeats in one pass
+        before, attrs = s[:].clone(), dict(s.schema)
+        with pytest.raises(error, match=match):
+            rb.extend(mutate(transitions(5, start=30)))
+        assert len(full) == 2
+        assert len(rb) == 30 and rb.writer._cursor == 30 and rb.writer._write_count == 30
+        assert s.schema == attrs and s.env_names == ("FetchPush-v4",)
+        _assert_td_equal(s[:], before)
+        rb.extend(transitions(5, start=30))  # a good batch after it: one pass again, right after the old rows
+        assert len(full) == 2 and torch.equal(s["observation"][30:35, 0], torch.arange(30, 35).float())
+
+
+def test_repeat_appends_follow_new_keys_and_env_names(tmp_path, transitions):
+    """What a write changes (a column added, an env name registered, the storage's env) holds for the next."""
+    from tensordict import NonTensorData
+
+    with ZarrStorage(tmp_path / "m.zarr", 100, chunk_rows=16, env="FetchPush-v4") as s:
+        rb = _rb(s)
+        rb.extend(transitions(5))
+        rb.extend(transitions(5, start=5))
+        wider = transitions(5, start=10)
+        wider.set(("next", "extra"), torch.ones(5, 2))
+        rb.extend(wider)  # a new key: a new column, whose older rows read zeros
+        assert "next/extra" in s.schema and s["next", "extra"][:10].abs().sum() == 0
+        with pytest.raises(KeyError, match="missing keys.*extra"):
+            rb.extend(transitions(5, start=15))  # the column is held now: every write carries it
+        wider = transitions(5, start=15)
+        wider.set(("next", "extra"), torch.ones(5, 2))
+        wider.set("env", NonTensorData("FetchReach-v4", batch_size=[5]))
+        rb.extend(wider)  # a new env name, from the data
+        assert s.env_names == ("FetchPush-v4", "FetchReach-v4")
+        wider = transitions(5, start=20)
+        wider.set(("next", "extra"), torch.ones(5, 2))
+        rb.extend(wider)  # no env entry: the storage's env
+        s.env = "FetchSlide-v4"
+        wider = transitions(5, start=25)
+        wider.set(("next", "extra"), torch.ones(5, 2))
+        rb.extend(wider)
+        assert s["env"][:30].tolist() == [0] * 15 + [1] * 5 + [0] * 5 + [2] * 5
+        assert s["run"][:30].unique().tolist() == [0] and len(rb) == 30
+
+
 def test_batched_collector_output_warns_with_a_fix(tmp_path, transitions):
     """[num_envs, T] data in an ndim=1 store: items stored whole (as LazyTensorStorage), with advice."""
     with ZarrStorage(tmp_path / "m.zarr", 100) as s:

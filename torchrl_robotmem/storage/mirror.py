@@ -255,8 +255,9 @@ class RamMirror:
             self.views.update_at_(data, cursor)  # each stacked TensorDict written in place
         elif isinstance(cursor, slice) and isinstance(data, TensorDict):
             # hot path (appends): one copy per leaf into its column, no TensorDict machinery
+            columns = self.columns
             for key, value in data.items(include_nested=True, leaves_only=True):
-                self.columns[key][cursor].copy_(value)
+                columns[key][cursor].copy_(value)
         else:
             self.views[cursor] = data
 

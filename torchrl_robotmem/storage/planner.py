@@ -165,8 +165,9 @@ def write_span(cursor, data, rows: torch.Tensor) -> tuple[Any, torch.Tensor | sl
         >>> write_span(torch.arange(2, 5), None, torch.arange(2, 5))
         (slice(2, 5, None), slice(2, 5, None))
     """
-    if len(rows) > 1 and bool((rows[1:] - rows[:-1] == 1).all()):
-        dirty = slice(int(rows[0]), int(rows[-1]) + 1)
+    flat = rows.cpu().numpy()  # numpy: its small-array ops skip the dispatch of torch ops
+    if len(flat) > 1 and int(flat[-1]) - int(flat[0]) == len(flat) - 1 and bool((np.diff(flat) == 1).all()):
+        dirty = slice(int(flat[0]), int(flat[-1]) + 1)
         if not isinstance(cursor, tuple) and not isinstance(data, LazyStackedTensorDict):
             cursor = dirty
         return cursor, dirty
@@ -218,7 +219,8 @@ def last_index(last) -> int | None:
 
 def expand_tag(value, lead: torch.Size, batch: torch.Size) -> torch.Tensor:
     """A tag per element of ``lead``, repeated over the item dims past it."""
-    value = torch.as_tensor(value, dtype=torch.long).reshape(lead)
+    if not (isinstance(value, torch.Tensor) and value.dtype == torch.long and value.shape == lead):
+        value = torch.as_tensor(value, dtype=torch.long).reshape(lead)
     extra = len(batch) - len(lead)
     return value.reshape(*lead, *([1] * extra)).expand(batch).clone() if extra else value
 
@@ -244,6 +246,9 @@ def plan_write(view: StoreView, cursor, data, *, set_cursor: bool, as_kind: Data
         keep_tags (bool): ``data`` carries ``episode`` / ``run`` tags to keep (rows
             copied from another store).
     """
+    plan = _plan_append(view, cursor, data) if set_cursor and as_kind is None and not keep_tags else None
+    if plan is not None:
+        return plan
     single = is_int_cursor(cursor)
     kind, td, warning = _normalise(view, data, single, as_kind)
     multi = isinstance(cursor, tuple)  # an element-wise write into a multi-dim storage
@@ -290,6 +295,71 @@ def plan_write(view: StoreView, cursor, data, *, set_cursor: bool, as_kind: Data
         else:
             plan.set_tags(episode, run)
     return plan
+
+
+def _plan_append(view: StoreView, cursor, data) -> WritePlan | None:
+    """The plan of the common append, made in one pass over the leaves; ``None``: :func:`plan_write` checks it all.
+
+    An append of a plain, unlocked TensorDict to a store of TensorDicts without constants, with the
+    store's batch dims and item shape, no tag entry, and exactly the store's keys, dtypes and row shapes
+    (:func:`_same_leaves`): every check of the full path passes for it, and this is the plan the full
+    path makes of it. Anything else (a first write, a new key, a dtype or shape change, an ``env``
+    entry, a non-tensor entry) returns ``None``, and the full path checks it and names what is wrong.
+    Nothing is cached: the schema a write is checked against is the one the view holds now.
+
+    Args:
+        view (StoreView): the store.
+        cursor: where the rows go (an append's: a slice, range or tensor of rows).
+        data: the rows.
+    """
+    mirror = view.mirror
+    specs = mirror.key_specs  # None before the first write
+    if (type(data) is not TensorDict or specs is None or view.constants or view.kind.kind != "tensordict"
+            or isinstance(cursor, tuple) or is_int_cursor(cursor) or data.is_locked):
+        return None
+    batch = data.batch_size
+    if len(batch) != view.ndim or not batch[0] or tuple(batch[1:]) != mirror.inner_shape:
+        return None
+    if _same_leaves(data, specs, len(batch), ()) != len(specs):
+        return None
+    td = data.exclude(*DROPPED_KEYS)  # a new TensorDict: the tags set on it do not reach the caller's
+    plan = WritePlan(td, batch.numel(), False, batch, view.kind,
+                     env=torch.full(batch, view.env_code, dtype=torch.long))
+    plan.draw = _episode_inputs(view, td, plan.n)
+    return plan
+
+
+def _same_leaves(td: TensorDict, specs: dict, dims: int, prefix: tuple) -> int:
+    """How many tensor leaves of ``td`` have their key's dtype and row shape in ``specs``; -1 on any other entry.
+
+    Nested plain TensorDicts are walked and the dropped keys skipped. A key not in ``specs`` (a tag
+    entry is none), a dtype or row shape that differs, or another kind of leaf or node (a non-tensor
+    entry, a lazy stack, a tensorclass) returns -1.
+
+    Args:
+        td (TensorDict): the rows (or a nested TensorDict of them).
+        specs (dict): ``{key: (dtype, row shape)}`` of the store (``RamMirror.key_specs``).
+        dims (int): the batch dims of the rows (a row's shape starts after them).
+        prefix (tuple): the key of ``td`` inside the rows (``()``: the rows themselves).
+    """
+    seen = 0
+    for name, value in td.items():
+        if not prefix and name in DROPPED_KEYS:
+            continue
+        key = (*prefix, name) if prefix else name
+        if isinstance(value, torch.Tensor):
+            spec = specs.get(key)
+            if spec is None or value.dtype != spec[0] or value.shape[dims:] != spec[1]:
+                return -1
+            seen += 1
+        elif type(value) is TensorDict:
+            more = _same_leaves(value, specs, dims, key if prefix else (name,))
+            if more < 0:
+                return -1
+            seen += more
+        else:
+            return -1
+    return seen
 
 
 def _normalise(view: StoreView, data, single: bool, as_kind: DataKind | None) -> tuple[DataKind, TensorDictBase, str | None]:
