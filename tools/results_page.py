@@ -388,6 +388,8 @@ HAND_SAC = Runs("SAC+HER from scratch", "hand_reach-s{}-out", seeds=(0, 1))
 HAND43_GCSL_CONTROL = HandArm("GCSL", "hand43-gcsl-control.jsonl", "gcsl", seeds=(0, 1, 2))
 HAND43_GCSL_PROPOSE = HandArm("GCSL + GoalProposer", "hand43-gcsl-propose.jsonl", "gcsl", seeds=(0, 1, 2))
 HAND43_GCSL_QUARTER = HandArm("GCSL + GoalProposer, rate 0.25", "hand43-gcsl-propose25.jsonl", "gcsl", seeds=(0, 1, 2))
+HAND43_GCSL_NEAR = HandArm("GCSL + GoalProposer, near the env's goal", "hand43-gcsl-near.jsonl", "gcsl",
+                           seeds=(0, 1, 2))
 HAND43_SECOND = {"control": HandArm("second run, GCSL", "hand43-gcsl-second-control.jsonl", "gcsl", seeds=(0, 1, 2)),
                  "propose": HandArm("second run, GCSL + GoalProposer", "hand43-gcsl-second-propose.jsonl", "gcsl",
                                     seeds=(0, 1, 2))}
@@ -866,6 +868,23 @@ def hand_proposer_pilot(root: Path) -> str:
     return (f"{head} That is {per_goal:.0f} ms a proposed goal. One seed, a pilot: no conclusion either way.\n\n{t}")
 
 
+#: the frames in all (10k random first) at which the GCSL tables show the evaluated success
+GCSL_FRAMES = [10000, 30000, 50000, 75000, 100000, 125000, 150000]
+
+
+def _gcsl_rounds_table(root: Path, arms: list[HandArm]) -> str:
+    """One row a seed of each arm: its success at :data:`GCSL_FRAMES`, its best round and its CPU-s."""
+    rows = []
+    for arm in arms:
+        for seed in arm.seeds:
+            rounds = {d["memory_rows"]: d for d in arm.rounds(root, seed)}
+            rows.append([f"{arm.label}, seed {seed}",
+                         *[f2(rounds[f]["success"]) if f in rounds else "-" for f in GCSL_FRAMES],
+                         f2(max(d["success"] for d in rounds.values())), cpu(rounds[max(rounds)]["cpu_s"])])
+    return table(["frames in all (10k random first)", *[kf(f) for f in GCSL_FRAMES], "best",
+                  "CPU-s of the rounds (the random collection not counted)"], rows)
+
+
 def hand_gcsl_proposer(root: Path) -> str:
     """Issue 43 on HandReach: GCSL with and without the proposer, three seeds each, to 150k frames in all."""
     control, propose = HAND43_GCSL_CONTROL.read(root), HAND43_GCSL_PROPOSE.read(root)
@@ -878,38 +897,34 @@ def hand_gcsl_proposer(root: Path) -> str:
             f"The proposer chose {slash([last['proposed'] for last in lasts], str)} goals a run (of 2,800 "
             f"collection episodes) in {slash(cost, lambda x: f'{x:.1f}')}% of the runs' CPU time "
             f"({slash(per_goal, lambda x: f'{x:.0f}')} ms a goal).")
-    cols = [10000, 30000, 50000, 75000, 100000, 125000, 150000]
-    rows = []
-    for arm in (HAND43_GCSL_CONTROL, HAND43_GCSL_PROPOSE):
-        for seed in arm.seeds:
-            rounds = {d["memory_rows"]: d for d in arm.rounds(root, seed)}
-            best = max(d["success"] for d in rounds.values())
-            rows.append([f"{arm.label}, seed {seed}", *[f2(rounds[f]["success"]) if f in rounds else "-" for f in cols],
-                         f2(best), cpu(rounds[max(rounds)]["cpu_s"])])
-    t = table(["frames in all (10k random first)", *[kf(f) for f in cols], "best",
-               "CPU-s of the rounds (the random collection not counted)"], rows)
-    return head + "\n\n" + t
+    return head + "\n\n" + _gcsl_rounds_table(root, [HAND43_GCSL_CONTROL, HAND43_GCSL_PROPOSE])
+
+
+def _gcsl_arm_against_control(root: Path, arm: HandArm, what: str) -> str:
+    """A later proposer arm, fixed before it ran, against the same control (and the first arm, rate 0.5)."""
+    control, other = HAND43_GCSL_CONTROL.read(root), arm.read(root)
+    c = compare(other, control)
+    half = HAND43_GCSL_PROPOSE.read(root)
+    head = (f"**At {_frames_of(other)} frames in all: {slash(other.values)} {what}, {slash(control.values)} "
+            f"without** (and {slash(half.values)} with the first arm, half of the episodes among every stored "
+            f"goal, above). Run-level: {run_level(c)}. Episode-level: {episode_level(c)}.")
+    return head + "\n\n" + _gcsl_rounds_table(root, [arm])
 
 
 def hand_gcsl_proposer_quarter(root: Path) -> str:
     """Issue 43 on HandReach: the second proposer arm, fixed before it ran (a quarter of the collection episodes),
     against the same control."""
-    control, quarter = HAND43_GCSL_CONTROL.read(root), HAND43_GCSL_QUARTER.read(root)
-    c = compare(quarter, control)
-    half = HAND43_GCSL_PROPOSE.read(root)
-    head = (f"**At {_frames_of(quarter)} frames in all: {slash(quarter.values)} with the proposer in a quarter of "
-            f"the collection episodes, {slash(control.values)} without** (and {slash(half.values)} in half of them, "
-            f"above). Run-level: {run_level(c)}. Episode-level: {episode_level(c)}.")
-    cols = [10000, 30000, 50000, 75000, 100000, 125000, 150000]
-    rows = []
-    for seed in HAND43_GCSL_QUARTER.seeds:
-        rounds = {d["memory_rows"]: d for d in HAND43_GCSL_QUARTER.rounds(root, seed)}
-        rows.append([f"{HAND43_GCSL_QUARTER.label}, seed {seed}",
-                     *[f2(rounds[f]["success"]) if f in rounds else "-" for f in cols],
-                     f2(max(d["success"] for d in rounds.values())), cpu(rounds[max(rounds)]["cpu_s"])])
-    t = table(["frames in all (10k random first)", *[kf(f) for f in cols], "best",
-               "CPU-s of the rounds (the random collection not counted)"], rows)
-    return head + "\n\n" + t
+    return _gcsl_arm_against_control(root, HAND43_GCSL_QUARTER, "with the proposer in a quarter of the collection "
+                                                                "episodes")
+
+
+def hand_gcsl_proposer_near(root: Path) -> str:
+    """Issue 43 on HandReach: the third proposer arm, fixed before it ran (half of the collection episodes, the
+    candidates the stored goals nearest the env's goal), against the same control."""
+    lasts = [HAND43_GCSL_NEAR.rounds(root, seed)[-1] for seed in HAND43_GCSL_NEAR.seeds]
+    per_goal = [1000 * last["propose_s"] / last["proposed"] for last in lasts]
+    return (_gcsl_arm_against_control(root, HAND43_GCSL_NEAR, "with the proposer's candidates near the env's goal")
+            .replace("\n\n", f" {slash(per_goal, lambda x: f'{x:.0f}')} ms a proposed goal.\n\n", 1))
 
 
 def hand_gcsl_second(root: Path) -> str:
@@ -936,6 +951,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "summary": summary,
     "hand_gcsl_proposer": hand_gcsl_proposer,
     "hand_gcsl_proposer_quarter": hand_gcsl_proposer_quarter,
+    "hand_gcsl_proposer_near": hand_gcsl_proposer_near,
     "hand_gcsl_second": hand_gcsl_second,
     "pnp_proposer_pilot": pnp_proposer_pilot,
     "hand_proposer_pilot": hand_proposer_pilot,

@@ -30,7 +30,8 @@ and the clone / gcsl lines of the result files, placed at the frames of the memo
 
     python -m experiments.her.hand_memory curves "GCSL=docs/runs/hand43-gcsl-control.jsonl" \
         "GCSL + GoalProposer, rate 0.5=docs/runs/hand43-gcsl-propose.jsonl" \
-        "GCSL + GoalProposer, rate 0.25=docs/runs/hand43-gcsl-propose25.jsonl" --png docs/img/hand43_gcsl.png
+        "GCSL + GoalProposer, rate 0.25=docs/runs/hand43-gcsl-propose25.jsonl" \
+        "GCSL + GoalProposer near the env's goal, rate 0.5=docs/runs/hand43-gcsl-near.jsonl" --png docs/img/hand43_gcsl.png
 """
 from __future__ import annotations
 
