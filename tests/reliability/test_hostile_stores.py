@@ -311,6 +311,24 @@ def test_len_far_past_the_chunk_files_costs_what_the_store_holds(stores):
     assert _hash_tree(stores) == before
 
 
+@pytest.mark.parametrize("value", ["x", -4, None, 1.5])
+def test_hostile_overwrites_count_is_refused_naming_it_and_repaired(stores, value):
+    """The record's count of journalled commits (a reader compares it across its load): a bad one is refused for
+    writing, named, changes nothing; ``repair`` mends it and the rows are all there."""
+    a = str(stores / "a.zarr")
+    _edit_attrs(a, lambda attrs: attrs.update(overwrites=value))
+    before = _hash_tree(stores)
+    with pytest.raises(IntegrityError, match=r"attribute 'overwrites' must be an integer >= 0"):
+        ZarrStorage(a)
+    assert _hash_tree(stores) == before
+    repair(a)
+    with ZarrStorage(a) as s:
+        assert len(s) == ROWS and torch.equal(s[:ROWS]["observation"], _rows(ROWS)["observation"])
+        s.set(slice(0, 2), _rows(2), set_cursor=False)  # a journalled commit counts from the mended value
+    with open(os.path.join(a, "zarr.json")) as f:
+        assert json.load(f)["attributes"]["overwrites"] == 1
+
+
 @pytest.mark.parametrize("version", [[1], "1", None, True])
 def test_malformed_format_marker_is_refused_naming_it(stores, version):
     a = str(stores / "a.zarr")

@@ -416,6 +416,8 @@ class _Mend:
                                     "'unknown-env-<code>'")
         if "env" in bad:
             changes["env"] = None
+        if "overwrites" in bad:  # only compared for a change (a reader's load): any count readers saw is left behind
+            changes["overwrites"] = 0
         if "kind" in bad:
             changes["kind"] = rebuild_attrs(self.store, self.local_dir)["kind"]
         return changes
