@@ -220,7 +220,7 @@ class GoalProposer(Transform):
                     raise ValueError(f"candidates='near_goal' proposes near the env's goals: pass near of shape "
                                      f"[{n}, goal_dim], got {None if near is None else list(near.shape)}.")
                 _, rows, found = self.index.search(near.reshape(n, -1).float(), self.num_candidates, filter=self.filter)
-                if not bool(found.any()):
+                if not bool(found[:, 0].all()):  # a goal with no stored goal near it (a filter's max_distance)
                     return None
                 # a missing neighbour (fewer stored rows than candidates) repeats the nearest one
                 rows = torch.where(found, rows, rows[:, :1])

@@ -261,14 +261,7 @@ def plot(runs: list[str], results: list[str], png: str) -> None:
     ax.axhline(0.1, color="grey", linestyle=":", linewidth=1)
     ax.text(0.99, 0.06, "rest-pose goals (10%)", color="grey", fontsize=8, ha="right",
             transform=ax.get_yaxis_transform())
-    ax.axhline(0.9, color="black", linestyle="--", linewidth=1)
-    ax.set_xlabel("env frames (thousands)")
-    ax.set_ylabel("evaluated success (100 episodes)")
-    ax.set_title("HandReach-v3")
-    ax.set_ylim(-0.02, 1.0)
-    ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(png, dpi=110)
+    _finish(fig, ax, "env frames (thousands)", "HandReach-v3", png)
 
 
 def curves(results: list[str], png: str) -> None:
@@ -286,10 +279,15 @@ def curves(results: list[str], png: str) -> None:
             pts = sorted((r for r in rows if r["seed"] == seed), key=lambda r: r["round"])
             ax.plot([r["memory_rows"] / 1000 for r in pts], [r["success"] for r in pts], color=colour, alpha=0.8,
                     linestyle=("-", "--", ":")[i % 3], label=f"{label or path}, seed {seed}")
+    _finish(fig, ax, "env frames in all (thousands; the first 10k random)", "HandReach-v3, GCSL", png)
+
+
+def _finish(fig, ax, xlabel: str, title: str, png: str) -> None:
+    """The 0.9 goal line, the labels and legend of a success-against-frames figure; saved to ``png``."""
     ax.axhline(0.9, color="black", linestyle="--", linewidth=1)
-    ax.set_xlabel("env frames in all (thousands; the first 10k random)")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("evaluated success (100 episodes)")
-    ax.set_title("HandReach-v3, GCSL")
+    ax.set_title(title)
     ax.set_ylim(-0.02, 1.0)
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()

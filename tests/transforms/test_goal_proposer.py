@@ -79,6 +79,12 @@ def test_near_goal_proposes_the_sparsest_remembered_goal_on_the_way_to_the_env_g
     assert (proposed[0] - proposed[1]).norm() > 0.1  # each toward its own env goal
     with pytest.raises(ValueError, match="near of shape"):
         proposer.propose(2)
+    # an env goal with no stored goal within the filter's max_distance: nothing proposed (the env keeps its goals)
+    far = torch.stack([targets[0], center + 100.0])
+    bounded = GoalProposer(path, ENV, num_candidates=10, k=5, warmup_rows=10, seed=1, candidates="near_goal",
+                           filter={"max_distance": 1.0})
+    assert bounded.propose(2, near=far) is None
+    assert bounded.propose(1, near=targets[:1]) is not None
     with pytest.raises(ValueError, match="candidates must be one of"):
         GoalProposer(path, ENV, candidates="nearest")
 
