@@ -287,8 +287,13 @@ class CommitEngine:
                     if flush or timer:
                         break
                     if self._complete_chunks():
-                        # Complete chunks wait for a pause in the writes (the timer still
-                        # bounds the wait): a commit's Python side (chunk copies, Zarr's
+                        if self._via_worker:
+                            # the worker encodes and writes them in its own process: committed as
+                            # they fill, beside the writes (durable rows/s 0.29x -> 0.51x the
+                            # memmap's at 1M rows; docs/benchmarks.md "Chunks committed as they fill")
+                            break
+                        # In-process, complete chunks wait for a pause in the writes (the timer
+                        # still bounds the wait): a commit's Python side (chunk copies, Zarr's
                         # event loop) holds the GIL, and committing chunk by chunk during
                         # a tight extend loop made it 3x slower, whatever the codec.
                         idle = time.monotonic() - self.last_set_time

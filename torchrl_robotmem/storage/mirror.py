@@ -258,6 +258,8 @@ class RamMirror:
             columns = self.columns
             for key, value in data.items(include_nested=True, leaves_only=True):
                 columns[key][cursor].copy_(value)
+            if self.rows is not None:
+                self.rows.written(cursor.stop * self._packed.stride(0))  # the next pages mapped ahead
         else:
             self.views[cursor] = data
 

@@ -55,6 +55,8 @@ from typing import Any
 
 import torch
 
+from .prefault import Prefault
+
 __all__ = ["CACHE_ENV", "ROWS_DIR", "ROWS_FILE", "SEAL_FILE", "RowFile", "record_digest", "remove_rows", "rows_layout",
            "url_cache_dir"]
 
@@ -189,6 +191,7 @@ class RowFile:
         self.made_folder = False  # this handle made ``_rows/`` (an open that fails removes it again)
         self.in_memory = False  # no room for the file: the rows live in private pages (a growth copies them)
         self.scans = 0  # scans under way (readahead on while > 0, see ``scanning``)
+        self.ahead = Prefault()  # a writer's pages mapped ahead of its writes (see ``written``)
 
     # -- choosing the file ---------------------------------------------------------------------
 
@@ -429,6 +432,8 @@ class RowFile:
         else:
             m = mmap.mmap(self.fd, max(nbytes, 1), access=access)
             _advise(m, scan=self.scans > 0)
+            if access == mmap.ACCESS_WRITE:
+                self.ahead.mapped(m, nbytes)
         self.maps = [*self.maps[-1:], m]  # older mappings stay alive through the views that use them
         return torch.frombuffer(m, dtype=torch.uint8, count=nbytes).view(*shape, int(row_bytes))
 
@@ -446,8 +451,13 @@ class RowFile:
         self.copy_on_write = False
         self.retired = old  # closed at release (the old views still map it until the copy is done)
 
+    def written(self, end: int) -> None:
+        """A write into the mapping ended at byte ``end``: the pages past it are mapped ahead (:mod:`.prefault`)."""
+        self.ahead.written(end)
+
     def release(self) -> None:
         """Releases the file and its lock (mapped views stay readable until dropped). Idempotent."""
+        self.ahead.stop()
         for fd in (self.fd, self.retired):
             if fd is not None:
                 with contextlib.suppress(OSError):
