@@ -26,13 +26,6 @@ from .format import is_strict
 
 __all__ = ["BACKGROUND_FILL_BYTES", "BACKGROUND_FILL_ENV", "fill_in_background", "load_rows"]
 
-
-
-
-
-
-
-
 #: rows (bytes) from which a reader fills in the background (below it, the open's read is a few
 #: tens of milliseconds); ``$TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES`` sets another threshold
 BACKGROUND_FILL_BYTES = 64 << 20
