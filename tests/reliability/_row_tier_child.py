@@ -115,6 +115,25 @@ def background_fill_kill(path, conn, cache, rows, **_):
     _kill_self()
 
 
+def writer_background_fill_kill(path, conn, rewrite, appended, **_):
+    """Opens a store with no row file as its writer, the rows filled in the background; rewrites rows
+    ``rewrite`` in place and appends ``appended`` rows (``make_rows`` of the write numbers after the
+    store's), flushes, then is killed with the fill under way or done (whichever)."""
+    from torchrl.data import TensorDictReplayBuffer
+
+    from torchrl_robotmem import ZarrStorage
+
+    os.environ["TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES"] = "0"
+    st = ZarrStorage(path, env=ENV)
+    background = st.row_file["background"]
+    n = len(st)
+    st.set(torch.tensor(rewrite), make_rows(torch.arange(n, n + len(rewrite))), set_cursor=False)
+    TensorDictReplayBuffer(storage=st, batch_size=4).extend(make_rows(torch.arange(n + len(rewrite), n + len(rewrite) + appended)))
+    st.flush()
+    conn.send({"background": background, "len": len(st)})
+    _kill_self()
+
+
 def unbounded_grow_kill(path, conn, flush_at, last, kill_at, **_):
     """Test 3: a memory without a declared capacity grows (``chunk_rows=64``), flushing at ``flush_at``;
     then one extend to ``last`` rows that grows it again, and a kill: after the grown rows were written
@@ -233,6 +252,7 @@ def cgroup_reader(path, conn, cgroup, version, rows_bytes, batch, **_):
 
 
 SCENARIOS = {f.__name__: f for f in (ring_overwrite_kill, fresh_writer_kill, fill_kill, background_fill_kill,
+                                     writer_background_fill_kill,
                                      unbounded_grow_kill,
                                      tail_writer, ring_writer, cgroup_reader)}
 

@@ -272,6 +272,23 @@ def test_killed_while_filling_in_the_background(tmp_path):
     _check(path, torch.arange(200), read_only=False, sealed=False)
 
 
+def test_writer_killed_while_filling_in_the_background(tmp_path):
+    """A writer whose rows are filled in the background rewrites rows in chunks it has not filled, appends,
+    flushes and is killed: the committed store holds the rewrite and the appends over the old rows, whole."""
+    path = tmp_path / "store.zarr"
+    _make_store(path, torch.arange(200))
+    shutil.rmtree(path / "_rows")
+    rewrite = [70, 71, 130, 199]
+    msgs = _run(tmp_path, "writer_background_fill_kill", killed=True, path=str(path), rewrite=rewrite, appended=30)
+    assert msgs and msgs[0]["background"] and msgs[0]["len"] == 230, f"the writer did not fill in the background: {msgs}"
+    expected = torch.cat([torch.arange(200), torch.arange(204, 234)])
+    expected[rewrite] = torch.arange(200, 204)
+    assert not (path / "_rows" / "seal.json").exists(), "a killed writer left a seal"
+    _check(path, expected, read_only=True, sealed=False)
+    _check(path, expected, read_only=False, sealed=False)
+    _check(path, expected, read_only=True, sealed=True)
+
+
 def test_torn_row_file_with_its_seal_is_filled_again(tmp_path):
     path = tmp_path / "store.zarr"
     _make_store(path, torch.arange(RING + 40))  # a ring that wrapped

@@ -57,7 +57,7 @@ def test_rows_are_filled_chunk_by_chunk_and_the_asked_ones_first(store):
     out = {p: torch.zeros(ROWS, *group[p].shape[1:], dtype=torch.float32) for p in ("obs", "action")}
     reads = ChunkReads({p: group[p] for p in out}, out, CHUNK, local_dir=store)
     fill = RowFill(reads, ROWS, record_file=os.path.join(store, "zarr.json"), max_size=2 * ROWS,
-                   fallback=lambda: pytest.fail("nothing here needs the synchronous path"), start=False)
+                   fallback=lambda failure: pytest.fail("nothing here needs the synchronous path"), start=False)
     fill.ensure(np.array([5, 700]))  # chunks 0 and 10
     filled = out["obs"][:, 0] == torch.arange(ROWS, dtype=torch.float32)
     assert filled[:CHUNK].all() and filled[10 * CHUNK: 11 * CHUNK].all()
@@ -77,7 +77,7 @@ def test_a_hostile_record_during_the_fill_hands_it_to_the_synchronous_load(store
     reads = ChunkReads({"obs": group["obs"]}, out, CHUNK, local_dir=store)
     record_file = os.path.join(store, "zarr.json")
 
-    def synchronous():
+    def synchronous(failure):
         raise ValueError("the synchronous load ran")
 
     fill = RowFill(reads, ROWS, record_file=record_file, max_size=2 * ROWS, fallback=synchronous, start=False)
@@ -196,3 +196,85 @@ def test_below_the_threshold_the_open_reads_every_row(store, monkeypatch):
     with ZarrStorage(store, read_only=True) as reader:
         assert reader._store.mirror.fill is None
     assert glob.glob(os.path.join(store, "obs", "c", "*"))
+
+
+# -- the writer's fill (after a crash, or any open that finds no usable row file) ----------------------------------
+
+
+@pytest.fixture
+def writer_fill(monkeypatch):
+    """The writer's fill without its background thread: only what the open and each write ask for is filled,
+    then the rest at the first read of every row. What the thread would race is made to happen by construction."""
+    import functools
+
+    import torchrl_robotmem.storage.mirror as mirror_module
+
+    monkeypatch.setattr(mirror_module, "RowFill", functools.partial(RowFill, start=False))
+
+
+def _open_writer(path: str) -> ZarrStorage:
+    writer = ZarrStorage(path, chunk_rows=CHUNK, goal_conditioned=False)
+    assert writer.row_file["background"] and writer._store.mirror.fill is not None  # the open read only what it needs
+    return writer
+
+
+def test_a_writers_open_fills_in_the_background_and_a_write_below_the_length_is_kept(store, writer_fill):
+    """Rows rewritten in place right after the open, in a chunk not filled yet: the chunk is filled first, so
+    the fill never writes the old rows over the new ones (a reopen reads the rewrite)."""
+    writer = _open_writer(store)
+    try:
+        assert not writer._store.mirror.fill.ready(np.array([320]))  # chunk 5: not read by the open
+        writer.set(torch.arange(320, 330), _rows(7000, 7010))
+        writer.set(slice(640, 650), _rows(8000, 8010))  # a slice too (the append path's copy)
+        rows = writer.get(torch.arange(ROWS))  # every chunk filled now
+        expected = torch.arange(ROWS, dtype=torch.float32)
+        expected[320:330] += 6680
+        expected[640:650] += 7360
+        assert _whole(rows) and torch.equal(rows["obs"][:, 0], expected)
+    finally:
+        writer.close()
+    with ZarrStorage(store, read_only=True) as reader:
+        assert reader.row_file["sealed"]  # the close waited for the fill: the file holds every row
+        assert torch.equal(reader.get(torch.arange(ROWS))["obs"][:, 0], expected)
+
+
+def test_a_writers_open_closes_the_episode_left_open_and_appends_after_it(store, writer_fill):
+    """The store's one episode was left open (its rows were never ended): the open ends it on its last row,
+    from the tag columns it read before the fill; the fill does not undo the flag; new rows get a new episode."""
+    writer = _open_writer(store)
+    try:
+        writer.set(torch.arange(ROWS, ROWS + 10), _rows(ROWS, ROWS + 10))
+        last = writer.get(torch.tensor([ROWS - 1, ROWS]))
+        rows = writer.get(torch.arange(ROWS + 10))  # every chunk filled
+        assert bool(last["next", "done"][0]) and not bool(last["next", "done"][1])
+        assert int(rows["next", "done"].sum()) == 1
+        episodes = writer["episode"][: ROWS + 10].reshape(-1)
+        assert int(episodes[ROWS]) > int(episodes[:ROWS].max())  # an id not in use
+    finally:
+        writer.close()
+    with ZarrStorage(store, read_only=True) as reader:
+        assert bool(reader.get(torch.tensor([ROWS - 1]))["next", "done"][0])
+        assert torch.equal(reader.get(torch.arange(ROWS + 10))["obs"][:, 0], torch.arange(ROWS + 10, dtype=torch.float32))
+
+
+def test_a_writers_fill_refuses_a_damaged_chunk_and_keeps_what_it_writes_elsewhere(store, writer_fill):
+    """A flipped byte in chunk 3: the open returns; a read or write of that chunk raises, naming it; rows written
+    past the opened length are committed all the same (the chunk they go into was filled at the open)."""
+    target = os.path.join(store, "action", "c", "3", "0")
+    data = bytearray(open(target, "rb").read())
+    data[len(data) // 2] ^= 0x40
+    open(target, "wb").write(bytes(data))
+    writer = _open_writer(store)
+    try:
+        with pytest.raises(IntegrityError, match=r"array 'action' chunk 3 \(action/c/3/0, rows 192-255\): checksum mismatch"):
+            writer.get(torch.tensor([200]))
+        with pytest.raises(IntegrityError, match=r"array 'action' chunk 3"):
+            writer.set(torch.tensor([201]), _rows(9000, 9001))
+        writer.set(torch.arange(ROWS, ROWS + 10), _rows(ROWS, ROWS + 10))
+        writer.flush()
+    finally:
+        writer.close()
+    group = zarr.open_group(store, mode="r")
+    assert group.attrs["len"] == ROWS + 10
+    assert np.array_equal(group["obs"][ROWS:ROWS + 10, 0], np.arange(ROWS, ROWS + 10, dtype=np.float32))
+    assert not os.path.exists(os.path.join(store, "_rows", "seal.json"))  # not sealed: the next open reads again

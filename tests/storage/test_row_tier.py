@@ -51,7 +51,7 @@ def test_a_clean_close_seals_the_rows_and_an_open_serves_them_without_a_chunk(tm
         shutil.rmtree(os.path.join(path, node, "c"))  # what is served is the row file, not the chunks
     with ZarrStorage(path, read_only=True) as st:
         assert st.row_file == {"file": os.path.join(os.path.realpath(path), ROWS_DIR, "rows.bin"),
-                               "sealed": True, "shared": True}
+                               "sealed": True, "shared": True, "background": False}
         assert torch.equal(st["obs"], _rows(0, 4 * CHUNK)["obs"])
     with ZarrStorage(path) as st:  # a writer neither: it checks the arrays' metadata, lists no chunk
         assert st.row_file["sealed"] is True and torch.equal(st["obs"], _rows(0, 4 * CHUNK)["obs"])

@@ -1,4 +1,4 @@
-"""A reader's rows filled from the chunk files in the background: the open returns at once, a sample waits only for its chunks.
+"""Rows filled from the chunk files in the background: the open returns at once, a sample waits only for its chunks.
 
 A reader whose row file is not sealed for the record it opened (a writer is active beside it, a crash
 left no seal) must fill its rows from the committed chunks before serving them. For a large memory that
@@ -28,6 +28,12 @@ What is served is what a synchronous fill would serve:
 A forked child (a ``DataLoader`` worker) fills what is left itself, in its own thread, into the same
 shared file; ``close`` stops the thread.
 
+**The writer's fill** (a writer with no usable row file: after a crash) runs the same way without the looks
+at the record (``record_file=None``: no one else commits): every write into rows below ``n0`` first fills
+their chunks (:meth:`ready` / :meth:`ensure`, through ``RamMirror.fill_before_write``), so the fill never
+writes over a row written since the open, and its ``fallback`` raises the damage it met, naming the chunk
+(:func:`.loader.fill_in_background`).
+
 Example:
     >>> import tempfile, numpy as np, torch, zarr
     >>> from tensordict import TensorDict
@@ -38,7 +44,8 @@ Example:
     ...     storage.set(slice(0, 10), TensorDict({"obs": torch.arange(30.).reshape(10, 3)}, [10]))
     >>> out = torch.zeros(10, 3)
     >>> reads = ChunkReads({"obs": zarr.open_group(path, mode="r")["obs"]}, {"obs": out}, 4, local_dir=path)
-    >>> fill = RowFill(reads, 10, record_file=path + "/zarr.json", max_size=100, fallback=lambda: None, start=False)
+    >>> fill = RowFill(reads, 10, record_file=path + "/zarr.json", max_size=100, fallback=lambda failure: None,
+    ...                start=False)
     >>> fill.ensure(np.array([9]))  # the chunk of row 9 (rows 8-9) only
     >>> out[9].tolist(), out[0].tolist()
     ([27.0, 28.0, 29.0], [0.0, 0.0, 0.0])
@@ -76,15 +83,17 @@ class RowFill:
         n0 (int): the rows to fill (the open's length).
 
     Keyword Args:
-        record_file (str): the store's commit record (``zarr.json``), looked at around every chunk read.
+        record_file (str, optional): the store's commit record (``zarr.json``), looked at around every chunk
+            read; ``None`` for the store's writer, the only process that commits (nothing to look for).
         max_size (int): the ring's capacity (a record whose ``write_count`` passes it has wrapped).
-        fallback (callable): the synchronous fill of every row (``loader.load_rows``), for what this
-            cannot read; it raises the store's damage errors.
+        fallback (callable): ``fallback(failure)``, what this cannot read: a reader's synchronous fill of
+            every row (``loader.load_rows``, raising the store's damage errors); a writer's error naming the
+            damage. ``failure`` is ``(chunk, paths)`` for a chunk that could not be read, else ``None``.
         start (bool): start the background thread (``False``: only :meth:`ensure` and :meth:`wait` fill).
     """
 
-    def __init__(self, reads: ChunkReads, n0: int, *, record_file: str, max_size: int,
-                 fallback: Callable[[], None], start: bool = True) -> None:
+    def __init__(self, reads: ChunkReads, n0: int, *, record_file: str | None, max_size: int,
+                 fallback: Callable[[tuple | None], None], start: bool = True) -> None:
         self.reads, self.n0 = reads, int(n0)
         self.record_file, self.max_size = record_file, int(max_size)
         self.fallback = fallback
@@ -92,6 +101,7 @@ class RowFill:
         self.state = np.zeros(self.nchunks, np.int8)
         self.done = self.nchunks == 0
         self.error: BaseException | None = None
+        self.failure: tuple | None = None  # (chunk, paths) that could not be read: handed to ``fallback``
         self._handed_over = False
         self._stop = False
         self._pid = os.getpid()
@@ -111,6 +121,12 @@ class RowFill:
             return self._raise()
         chunks = np.unique(np.asarray(rows, dtype=np.int64) // self.reads.chunk_rows)
         self._fill_many(chunks[(chunks >= 0) & (chunks < self.nchunks)])
+
+    def ready(self, rows: np.ndarray) -> bool:
+        """Whether every chunk of first-dimension ``rows`` (non-negative, below ``n0``) is filled already."""
+        chunks = np.unique(np.asarray(rows, dtype=np.int64) // self.reads.chunk_rows)
+        chunks = chunks[(chunks >= 0) & (chunks < self.nchunks)]
+        return bool((self.state[chunks] == _DONE).all())
 
     def wait(self) -> None:
         """Fills every chunk left (in this thread, beside the background one) and waits for the rest."""
@@ -185,14 +201,21 @@ class RowFill:
         """Reads chunk ``c`` between two looks at the record that agree (the writer committed nothing meanwhile)."""
         for _ in range(_RETRIES):
             before = self._look()
-            if self.reads.read(c, self.n0):
-                raise _HandOver  # a file gone or damaged: the synchronous path names it
+            failed = self.reads.read(c, self.n0)
+            if failed:
+                self.failure = self.failure or (c, sorted(failed))
+                raise _HandOver  # a file gone or damaged: the fallback names it
             if self._look() == before:
                 return
         raise _HandOver
 
-    def _look(self) -> tuple:
-        """The record file's identity; a new one is read: a journal or a wrapped ring hands the fill over."""
+    def _look(self) -> tuple | None:
+        """The record file's identity; a new one is read: a journal or a wrapped ring hands the fill over.
+
+        ``None`` for a writer's fill: no one else commits.
+        """
+        if self.record_file is None:
+            return None
         try:
             st = os.stat(self.record_file, follow_symlinks=False)
         except OSError:
@@ -219,7 +242,7 @@ class RowFill:
             while bool((self.state == _FILLING).any()):
                 self._cv.wait()
         try:
-            self.fallback()
+            self.fallback(self.failure)
         except BaseException as err:  # noqa: BLE001 - every later read raises it
             self.error = err
         with self._cv:

@@ -290,7 +290,7 @@ class CommitEngine:
                         if self._via_worker:
                             # the worker encodes and writes them in its own process: committed as
                             # they fill, beside the writes (durable rows/s 0.29x -> 0.51x the
-                            # memmap's at 1M rows; docs/benchmarks.md "Chunks committed as they fill")
+                            # memmap's at 1M rows; docs/benchmarks.md "...chunks committed as they fill")
                             break
                         # In-process, complete chunks wait for a pause in the writes (the timer
                         # still bounds the wait): a commit's Python side (chunk copies, Zarr's
@@ -324,7 +324,15 @@ class CommitEngine:
             overwrite = any(lo < committed0 for lo in self.dirty.values())
             everything = everything or overwrite
             chunks = sorted(self.dirty) if everything else sorted(self._complete_chunks())
-            snapshots = {c: mirror.copy_chunk(c) for c in chunks}
+            try:  # a snapshot of a chunk a writer's fill cannot read raises (its damage): nothing was taken
+                snapshots = {c: mirror.copy_chunk(c) for c in chunks}
+            except BaseException as err:
+                self.error = err
+                self.flush_done = max(self.flush_done, target)
+                self.cv.notify_all()
+                if not self.background:
+                    raise
+                return
             taken = {c: self.dirty.pop(c) for c in chunks}
             meta = self.record() if everything else None
             if overwrite:  # every journalled commit changes the record, even one that rewrites rows in place

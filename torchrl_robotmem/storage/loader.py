@@ -1,8 +1,8 @@
 """Filling the rows of an opened record from the Zarr chunks: at once, or in the background.
 
 A row file sealed for the record needs neither (:mod:`.rowfile`). Otherwise a
-large reader's rows are filled by a thread (:func:`fill_in_background`, the
-chunks a read needs first) and every other open reads them all before it
+large memory's rows are filled by a thread (:func:`fill_in_background`, the
+chunks a read or a write needs first) and every other open reads them all before it
 returns (:func:`load_rows`), a reader applying a pending journal in RAM and
 reading again the chunks a writer overwrote meanwhile.
 :meth:`MemoryStore.fill_rows <.store.MemoryStore.fill_rows>` picks which.
@@ -24,7 +24,7 @@ import os
 
 from .format import is_strict
 
-__all__ = ["BACKGROUND_FILL_BYTES", "BACKGROUND_FILL_ENV", "fill_in_background", "load_rows"]
+__all__ = ["BACKGROUND_FILL_BYTES", "BACKGROUND_FILL_ENV", "OPEN_COLUMNS", "fill_in_background", "load_rows"]
 
 #: rows (bytes) from which a reader fills in the background (below it, the open's read is a few
 #: tens of milliseconds); ``$TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES`` sets another threshold
@@ -33,23 +33,64 @@ BACKGROUND_FILL_ENV = "TORCHRL_ROBOTMEM_BACKGROUND_FILL_BYTES"
 
 
 def fill_in_background(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> bool:
-    """Starts a background fill of a reader's rows (:mod:`.background_fill`) where it serves what a
-    synchronous load would; returns whether it started (``False``: call :func:`load_rows`).
+    """Starts a background fill of the rows (:mod:`.background_fill`) where it serves what a synchronous
+    load would; returns whether it started (``False``: call :func:`load_rows`).
 
-    Only a reader of a local store on the CPU, with one batch dimension, that raises on damage, whose
-    record has no pending journal and whose ring has not wrapped, with at least
-    :data:`BACKGROUND_FILL_BYTES` of rows, every column read from its chunk files.
+    Only a local store on the CPU, with one batch dimension, that raises on damage, whose record has no
+    pending journal and whose ring has not wrapped, with at least :data:`BACKGROUND_FILL_BYTES` of rows,
+    every column read from its chunk files. A reader's fill looks at the commit record around each chunk
+    (a writer may commit beside it); the writer's own fill needs no look, but reads the columns its open
+    needs before it returns (:data:`OPEN_COLUMNS`: which episodes the previous writer left open, which ids
+    are in use), and writes into rows below the opened length wait for their chunk's fill.
     """
     n0 = mirror.dim0(int(attrs.get("len", 0)))
     threshold = int(os.environ.get(BACKGROUND_FILL_ENV, BACKGROUND_FILL_BYTES))
-    if not (handle.read_only and handle.local_dir is not None and on_damage == "raise" and mirror.ndim == 1
+    if not (handle.local_dir is not None and on_damage == "raise" and mirror.ndim == 1
             and str(mirror.device).startswith("cpu") and not record.get("journal")
             and int(attrs.get("write_count", 0)) <= mirror.max_size and n0
             and n0 * mirror.layout.row_bytes >= threshold):
         return False
-    return mirror.start_fill(handle.group, n0, local_dir=handle.local_dir,
-                             record_file=os.path.join(handle.local_dir, "zarr.json"),
-                             fallback=lambda: load_rows(handle, mirror, record, attrs, on_damage=on_damage))
+    if handle.read_only:
+        return mirror.start_fill(handle.group, n0, local_dir=handle.local_dir,
+                                 record_file=os.path.join(handle.local_dir, "zarr.json"),
+                                 fallback=lambda failure: load_rows(handle, mirror, record, attrs, on_damage=on_damage))
+    early = [p for p in OPEN_COLUMNS if p in mirror.schema]
+    if not mirror.read_columns(handle.group, early, n0, local_dir=handle.local_dir):
+        return False  # one of them is not readable from its files: the synchronous load names what is wrong
+    if not mirror.start_fill(handle.group, n0, local_dir=handle.local_dir, record_file=None,
+                             fallback=lambda failure: _damaged(handle, mirror, n0, failure)):
+        return False
+    # the chunk the next appends go into holds opened rows too: filled now (its damage refuses the open, as a
+    # synchronous load's would), so a chunk the commits write is always whole
+    mirror.fill_before_write(slice(n0 - 1, n0))
+    return True
+
+
+#: the columns a writer's open reads before it returns when its rows are filled in the background
+OPEN_COLUMNS = ("episode", "run", "next/done")
+
+
+def _damaged(handle, mirror, n0: int, failure: tuple | None) -> None:
+    """A writer's fill met a chunk it cannot read: raised by that read and every later one, naming it as the
+    synchronous load does (a missing file, a checksum that does not match, a chunk that does not decode)."""
+    from .errors import IntegrityError, Problem
+    from .format import chunk_keys, decode_chunks
+
+    problems = []
+    c, paths = failure if failure is not None else (None, [])
+    for path in paths:
+        arr = handle.group[path]
+        key = chunk_keys(arr, path, c)[0]
+        rows = (c * mirror.chunk_rows, min((c + 1) * mirror.chunk_rows, n0))
+        if not os.path.lexists(os.path.join(handle.local_dir, *key.split("/"))):
+            problems.append(Problem("missing_chunk", "chunk file missing", array=path, chunk=c, key=key, rows=rows))
+            continue
+        found, _ = decode_chunks(arr, path, n0, mirror.chunk_rows, present={c})
+        problems += found or [Problem("undecodable", "the chunk file could not be read", array=path, chunk=c,
+                                      key=key, rows=rows)]
+    raise IntegrityError(handle.path, problems or [Problem("undecodable", "a chunk could not be read")],
+                         read_only=False, action="The rows written since the open are kept in memory; no chunk was "
+                                                 "written over.")
 
 
 def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> int:

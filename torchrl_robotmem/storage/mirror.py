@@ -85,6 +85,8 @@ class RamMirror:
         self.rows: RowFile | None = None  # the file the packed rows are mapped from (None: RAM)
         self.unbounded = False  # a memory without a declared capacity: chunks sized for a large memory
         self.mapped_layout: dict | None = None  # the layout of the rows in that file
+        self.read_early: set = set()  # columns read before a writer's fill (``read_columns``), served during it
+        self.filled_in_background = False  # the open's rows were filled by a RowFill (``ZarrStorage.row_file``)
 
     # -- shapes along the first dimension --------------------------------------------
 
@@ -182,11 +184,13 @@ class RamMirror:
         self.finish_fill()
         return self._columns
 
-    def start_fill(self, group: Any, n0: int, *, local_dir: Any, record_file: str,
-                   fallback: Callable[[], Any]) -> bool:
+    def start_fill(self, group: Any, n0: int, *, local_dir: Any, record_file: str | None,
+                   fallback: Callable[[tuple | None], Any]) -> bool:
         """Fills the first ``n0`` rows from the chunk files in the background (:class:`.background_fill.RowFill`).
 
-        Returns ``False`` (nothing started) where a column cannot be read from its files: fill synchronously then.
+        ``record_file``: the commit record a reader looks at around each chunk read (``None``: the writer's
+        fill). Returns ``False`` (nothing started) where a column cannot be read from its files: fill
+        synchronously then.
         """
         self.finish_fill()
         arrays = {path: group[path] for path in self.schema}
@@ -194,6 +198,7 @@ class RamMirror:
         if reads.left or not reads.todo:
             return False
         self.fill = RowFill(reads, n0, record_file=record_file, max_size=self.max_size, fallback=fallback)
+        self.filled_in_background = True
         return True
 
     def finish_fill(self) -> None:
@@ -202,6 +207,49 @@ class RamMirror:
         if fill is not None:
             fill.wait()
             self.fill = None
+            self.read_early = set()
+
+    def read_columns(self, group: Any, paths: list[str], n0: int, *, local_dir: Any) -> bool:
+        """Reads columns ``paths`` of the first ``n0`` rows from their chunk files now, before a writer's fill.
+
+        What the writer's open reads before it returns (the episode tags and done flags: which episodes the
+        previous writer left open, which ids are in use): :meth:`tag_view` serves them without waiting for
+        the fill. Returns ``False`` where one cannot be read from its files (then fill synchronously).
+        """
+        arrays = {p: group[p] for p in paths}
+        if read_into(arrays, {p: self._column(p) for p in paths}, n0, self.chunk_rows, local_dir=local_dir):
+            return False
+        self.read_early = {_backend.path_to_key(p) for p in paths}
+        return True
+
+    def tag_view(self, key) -> torch.Tensor:
+        """The column ``key`` (all rows): at once if it was read before a fill (:meth:`read_columns`), else filled."""
+        if self.fill is not None and key in self.read_early:
+            return self._views.get(key)
+        return self.views.get(key)
+
+    def keys(self) -> list:
+        """The column keys (no wait for a fill: the layout is known before any row is read)."""
+        return list(self._views.keys(True, True)) if self._views is not None else []
+
+    def fill_before_write(self, index) -> None:
+        """During a writer's fill, fills the chunks of the rows ``index`` (first dimension) below the filled
+        length before they are written, so the fill never writes over a row written since the open (rows
+        past that length are not filled at all: nothing to wait for). Raises the fill's damage error for a
+        chunk it could not fill."""
+        fill = self.fill
+        if fill is None:
+            return
+        if fill.done and fill.error is None:
+            self.finish_fill()  # every chunk filled: writes go straight in from now on
+            return
+        rows = _first_dim_rows(index, fill.n0, self.chunk_rows)
+        if rows is None:
+            self.finish_fill()
+            return
+        rows = rows[(rows >= 0) & (rows < fill.n0)]
+        if rows.size and not fill.ready(rows):  # a chunk filled already is written (and committed) as it is,
+            fill.ensure(rows)  # even after the fill met a damaged chunk elsewhere, which this raises
 
     def stop_fill(self) -> None:
         """Stops the background thread of a fill under way (reads after it fill what is left themselves)."""
@@ -237,7 +285,7 @@ class RamMirror:
         out = {}
         n0 = self.dim0(n)
         for key in keys:
-            col = self.views.get(key)[:n0]
+            col = self.tag_view(key)[:n0]
             if key in TAG_KEYS:
                 col = self.lead(col)
             out[key] = col.reshape(-1, *col.shape[self.ndim:])[:n] if self.ndim > 1 else col[:n]
@@ -249,19 +297,23 @@ class RamMirror:
             self.rows.claim()
 
     def write(self, cursor, data: TensorDictBase) -> None:
-        """Writes the prepared rows ``data`` at ``cursor`` (along the first dimension) into the views."""
+        """Writes the prepared rows ``data`` at ``cursor`` (along the first dimension) into the views.
+
+        During a writer's fill, the chunks written into are filled first (:meth:`fill_before_write`).
+        """
         self.before_write()
+        self.fill_before_write(cursor)
         if isinstance(data, LazyStackedTensorDict) and data.stack_dim == 0:
-            self.views.update_at_(data, cursor)  # each stacked TensorDict written in place
+            self._views.update_at_(data, cursor)  # each stacked TensorDict written in place
         elif isinstance(cursor, slice) and isinstance(data, TensorDict):
             # hot path (appends): one copy per leaf into its column, no TensorDict machinery
-            columns = self.columns
+            columns = self._columns
             for key, value in data.items(include_nested=True, leaves_only=True):
                 columns[key][cursor].copy_(value)
             if self.rows is not None:
                 self.rows.written(cursor.stop * self._packed.stride(0))  # the next pages mapped ahead
         else:
-            self.views[cursor] = data
+            self._views[cursor] = data
 
     # -- episode ends ----------------------------------------------------------------
 
@@ -275,13 +327,16 @@ class RamMirror:
         Returns the first-dimension rows written, for the commit engine to mark dirty.
         """
         self.before_write()
-        nested = [k for k in self.views.keys(True, True) if isinstance(k, tuple) and len(k) > 2 and k[0] == "next"
+        first = torch.div(rows, self.inner_numel, rounding_mode="floor")
+        self.fill_before_write(first)
+        keys = self.keys()
+        nested = [k for k in keys if isinstance(k, tuple) and len(k) > 2 and k[0] == "next"
                   and k[-1] in ("done", "truncated")]
         for key in (DONE_KEY, TRUNCATED_KEY, *nested):
-            if key == DONE_KEY or key in self.views.keys(True, True):
-                col = self.views.get(key)
+            if key == DONE_KEY or key in keys:
+                col = self._views.get(key)
                 (col.reshape(-1, *col.shape[self.ndim:]) if self.ndim > 1 else col)[rows] = True
-        return torch.div(rows, self.inner_numel, rounding_mode="floor")
+        return first
 
     def open_episode_ends(self, n: int, cursor: int, *, full: bool, newest: int | None = None) -> torch.Tensor:
         """The last row of every episode among the first ``n`` transitions that no done ends.
@@ -291,13 +346,13 @@ class RamMirror:
         ``newest``: only the ``newest`` rows written last (before ``cursor``) can end an open
         episode (a writer whose open closed every earlier one): only those are read (``ndim=1``).
         """
-        if n == 0 or DONE_KEY not in self.views.keys(True, True) or "episode" not in self.schema or newest == 0:
+        if n == 0 or DONE_KEY not in self.keys() or "episode" not in self.schema or newest == 0:
             return torch.zeros(0, dtype=torch.long)
         if newest is not None and newest < n and self.ndim == 1:
             pos = torch.arange(cursor - newest, cursor, dtype=torch.long)
             pos = pos % self.max_dim0 if full else pos  # write order (a full ring wraps at its size)
-            run, episode = (self.lead(self.views.get(k)[pos]).reshape(newest).cpu() for k in ("run", "episode"))
-            done = self.views.get(DONE_KEY)[pos].reshape(newest, -1).any(-1).cpu()
+            run, episode = (self.lead(self.tag_view(k)[pos]).reshape(newest).cpu() for k in ("run", "episode"))
+            done = self.tag_view(DONE_KEY)[pos].reshape(newest, -1).any(-1).cpu()
             return pos[open_episode_ends(run, episode, done, cursor=0, full=False)]
         flat = {k: v.cpu() for k, v in self.flat_columns(("run", "episode", DONE_KEY), n).items()}
         done = flat[DONE_KEY].reshape(n, -1).any(-1)
@@ -314,7 +369,8 @@ class RamMirror:
         lo = c * self.chunk_rows
         hi = min(lo + self.chunk_rows, self.max_dim0)
         valid = max(0, min(hi, self.filled()) - lo)
-        packed = self.packed[lo:hi].to("cpu", copy=True)  # a CUDA mirror (device="cuda") is written from host memory
+        self.fill_before_write(slice(lo, hi))  # a writer's fill: the chunk's rows read first (once)
+        packed = self._packed[lo:hi].to("cpu", copy=True)  # a CUDA mirror (device="cuda") is written from host memory
         if valid < hi - lo:
             packed[valid:] = 0  # rows past len reach the disk as zeros
         return packed, self.layout

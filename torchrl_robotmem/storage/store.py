@@ -21,6 +21,7 @@ import torch
 from . import _backend, lifecycle, loader, writer_sync
 from .commit import CommitEngine
 from .context import missing_context, user_stacklevel
+from .errors import IntegrityError
 from .format import UNBOUNDED, dims, grown_size
 from .handle import StoreHandle
 from .layout import PackedLayout
@@ -149,8 +150,12 @@ class MemoryStore:
         notes the episode ids and runs they use.
         """
         sealed = self.rows_sealed and not pending  # the row file holds the record's rows
-        if sealed or loader.fill_in_background(self.handle, self.mirror, record, attrs, on_damage=self.on_damage):
-            return int(attrs.get("len", 0))  # background: the rows are filled from the chunks as they are read
+        if sealed:
+            return int(attrs.get("len", 0))
+        if loader.fill_in_background(self.handle, self.mirror, record, attrs, on_damage=self.on_damage):
+            if not self.read_only:  # the ids in use, from the columns read before the fill (a reader hands out none)
+                self.note_stored(self.mirror.dim0(int(attrs.get("len", 0))))
+            return int(attrs.get("len", 0))  # the rows are filled from the chunks as they are read
         n = loader.load_rows(self.handle, self.mirror, record, attrs, on_damage=self.on_damage)
         if n:  # a sealed file was closed cleanly: its record's counters are exact (and a reader filling in
             # the background hands out no id)
@@ -190,7 +195,13 @@ class MemoryStore:
     def seal_rows(self) -> None:
         """A writer's clean close: seals the row file for the committed record (see :mod:`.rowfile`)."""
         rows = self.mirror.rows
-        if rows is None or self.read_only or self.mirror.schema is None or self.mirror.packed is None:
+        if rows is None or self.read_only or self.mirror.schema is None:
+            return
+        try:
+            self.mirror.finish_fill()
+        except IntegrityError:
+            return  # a chunk the writer's fill could not read: not sealed (the next open fills and names it)
+        if self.mirror.packed is None:
             return
         n = int(self.mirror.length())
         # the open closed every episode it found open: only the rows appended since can end one (their
@@ -217,7 +228,7 @@ class MemoryStore:
         """Rows past the committed metadata may survive a crash (journal replays): never
         hand out an id that one of the first ``n0`` stored rows already uses."""
         if "episode" in self.mirror.schema:
-            self.tags.note_stored(self.mirror.views.get("episode")[:n0].max(), self.mirror.views.get("run")[:n0].max())
+            self.tags.note_stored(self.mirror.tag_view("episode")[:n0].max(), self.mirror.tag_view("run")[:n0].max())
 
     def sync_attrs(self, attrs: dict) -> None:
         """Persistent bookkeeping, mirrored from the group attributes."""

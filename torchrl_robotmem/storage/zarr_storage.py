@@ -209,13 +209,15 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     @property
     def row_file(self) -> dict | None:
-        """Where the rows are mapped from: ``{"file", "sealed", "shared"}``, or ``None`` (rows in RAM).
+        """Where the rows are mapped from: ``{"file", "sealed", "shared", "background"}``, or ``None`` (rows in RAM).
 
         ``file``: the row file (``None``: a private, unlinked one); ``sealed``: it held the opened record's
-        rows (the open read no chunk); ``shared``: this reader maps the store's own file (copy-on-write).
+        rows (the open read no chunk); ``shared``: this reader maps the store's own file (copy-on-write);
+        ``background``: the open returned before its rows were filled from the chunks (a thread fills them,
+        a read or write waits for its chunks only: docs/storage.md).
         """
         rows = self._store.rows
-        return None if rows is None else rows.describe()
+        return None if rows is None else {**rows.describe(), "background": self._mirror.filled_in_background}
 
     @property
     def env_names(self) -> tuple[str, ...]:
@@ -303,6 +305,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._store.check_writable()
             view = StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags)
             plan = plan_write(view, cursor, data, set_cursor=set_cursor, as_kind=as_kind, keep_tags=keep_tags)
+            if self.initialized:  # a writer's fill under way: the chunks written into are read first (a damaged
+                self._mirror.fill_before_write(cursor)  # one refuses the write, changing nothing)
         except Exception:
             if set_cursor:  # the writer moved its cursor before calling us (TORCHRL_NOTES b)
                 size = self.max_size if self._store.unbounded or not self.initialized else self._mirror.max_dim0
