@@ -278,3 +278,19 @@ def test_a_writers_fill_refuses_a_damaged_chunk_and_keeps_what_it_writes_elsewhe
     assert group.attrs["len"] == ROWS + 10
     assert np.array_equal(group["obs"][ROWS:ROWS + 10, 0], np.arange(ROWS, ROWS + 10, dtype=np.float32))
     assert not os.path.exists(os.path.join(store, "_rows", "seal.json"))  # not sealed: the next open reads again
+
+
+def test_a_commit_of_a_chunk_the_writers_fill_cannot_read_is_an_error_not_a_hang(store, writer_fill):
+    """Every row marked for a commit again (what TorchRL's in-place writes do) while chunk 3 cannot be filled:
+    the commit's snapshot of chunk 3 raises; ``flush`` and ``close`` say so (the writer thread used to die there,
+    and ``flush`` waited for it forever)."""
+    target = os.path.join(store, "action", "c", "3", "0")
+    data = bytearray(open(target, "rb").read())
+    data[len(data) // 2] ^= 0x40
+    open(target, "wb").write(bytes(data))
+    writer = _open_writer(store)
+    writer._store.mark_rows_dirty(ROWS)
+    with pytest.raises(RuntimeError, match=r"array 'action' chunk 3 \(action/c/3/0, rows 192-255\): checksum mismatch"):
+        writer.flush()
+    with pytest.raises(RuntimeError, match="chunk 3"):
+        writer.close()
