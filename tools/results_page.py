@@ -846,7 +846,7 @@ def _proposer_pilot(root: Path, control_arm: Runs, proposer_arm: Runs) -> tuple[
     summary = json.loads((root / RUNS / f"{name}-summary.json").read_text())["proposer"]
     ep = compare_arms(proposer.outcomes, control.outcomes)["test"]
     head = (f"**At {kf(frames[-1])} frames: {f2(proposer.values[0])} with the proposer, {f2(control.values[0])} "
-            f"without** (one seed an arm: no run-level figure; episode-level, the same 50 goals: McNemar p = "
+            f"without** (one seed an arm: no run-level figure; episode-level, the same {len(control.outcomes[0])} goals: McNemar p = "
             f"{pv(ep['p'])}, {ep['a_only']} vs {ep['b_only']} discordant). The proposer chose the goal of "
             f"{summary['proposed']} training episodes ({summary['kept']} kept the env's own, before the memory held "
             f"`warmup_rows`), in {summary['seconds']:.2f} s of the run's {cpu(proposer.cpu[0])} CPU-s.")
@@ -858,6 +858,18 @@ def pnp_proposer_pilot(root: Path) -> str:
     (archives ``pnp43-{control,propose}-s0.json``, the runs' summaries beside them)."""
     head, t, _ = _proposer_pilot(root, PNP43_CONTROL, PNP43_PROPOSER)
     return f"{head}\n\n{t}"
+
+
+PNP43_60K_CONTROL = Runs("SAC+HER from scratch", "pnp43-60k-control-s{}", seeds=(0,))
+PNP43_60K_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-60k-propose-s{}", seeds=(0,))
+
+
+def pnp_proposer_60k(root: Path) -> str:
+    """Issue 43 on FetchPickAndPlace to 60k frames: seed 0, the recipe with and without the proposer, side by side
+    (archives ``pnp43-60k-{control,propose}-s0.json``, the runs' summaries beside them)."""
+    head, t, summary = _proposer_pilot(root, PNP43_60K_CONTROL, PNP43_60K_PROPOSER)
+    per_goal = 1000 * summary["seconds"] / max(summary["proposed"], 1)
+    return f"{head} That is {per_goal:.0f} ms a proposed goal.\n\n{t}"
 
 
 def hand_proposer_pilot(root: Path) -> str:
@@ -954,6 +966,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "hand_gcsl_proposer_near": hand_gcsl_proposer_near,
     "hand_gcsl_second": hand_gcsl_second,
     "pnp_proposer_pilot": pnp_proposer_pilot,
+    "pnp_proposer_60k": pnp_proposer_60k,
     "hand_proposer_pilot": hand_proposer_pilot,
     "reach_second": reach_second,
     "push_clone": push_clone,
