@@ -85,7 +85,7 @@ class RamMirror:
         self.rows: RowFile | None = None  # the file the packed rows are mapped from (None: RAM)
         self.unbounded = False  # a memory without a declared capacity: chunks sized for a large memory
         self.mapped_layout: dict | None = None  # the layout of the rows in that file
-        self.read_early: set = set()  # columns read before a writer's fill (``read_columns``), served during it
+        self.read_early: dict = {}  # columns read before a writer's fill (``read_columns``), served during its open
         self.filled_in_background = False  # the open's rows were filled by a RowFill (``ZarrStorage.row_file``)
 
     # -- shapes along the first dimension --------------------------------------------
@@ -207,25 +207,35 @@ class RamMirror:
         if fill is not None:
             fill.wait()
             self.fill = None
-            self.read_early = set()
+            self.read_early = {}
 
     def read_columns(self, group: Any, paths: list[str], n0: int, *, local_dir: Any) -> bool:
         """Reads columns ``paths`` of the first ``n0`` rows from their chunk files now, before a writer's fill.
 
         What the writer's open reads before it returns (the episode tags and done flags: which episodes the
-        previous writer left open, which ids are in use): :meth:`tag_view` serves them without waiting for
-        the fill. Returns ``False`` where one cannot be read from its files (then fill synchronously).
+        previous writer left open, which ids are in use), into buffers of their own (written into the mapped
+        rows, a byte a row would fault in every page of the file): :meth:`tag_view` serves them until
+        :meth:`end_open`. Returns ``False`` where one cannot be read from its files (then fill synchronously).
         """
-        arrays = {p: group[p] for p in paths}
-        if read_into(arrays, {p: self._column(p) for p in paths}, n0, self.chunk_rows, local_dir=local_dir):
+        early = {}
+        for p in paths:
+            col = self._column(p)
+            early[p] = torch.empty((n0, *col.shape[1:]), dtype=col.dtype)
+        if read_into({p: group[p] for p in paths}, early, n0, self.chunk_rows, local_dir=local_dir):
             return False
-        self.read_early = {_backend.path_to_key(p) for p in paths}
+        self.read_early = {_backend.path_to_key(p): col for p, col in early.items()}
         return True
 
+    def end_open(self) -> None:
+        """The open is over: the columns read before the fill are dropped (reads of them wait for the fill)."""
+        self.read_early = {}
+
     def tag_view(self, key) -> torch.Tensor:
-        """The column ``key`` (all rows): at once if it was read before a fill (:meth:`read_columns`), else filled."""
-        if self.fill is not None and key in self.read_early:
-            return self._views.get(key)
+        """The column ``key``: during the open, the rows read before a writer's fill (:meth:`read_columns`, the
+        opened rows only); else all rows, filled."""
+        early = self.read_early.get(key)
+        if early is not None and self.fill is not None:
+            return early
         return self.views.get(key)
 
     def keys(self) -> list:

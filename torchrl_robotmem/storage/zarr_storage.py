@@ -137,6 +137,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 # it leaves them open, and the next open closes them again)
                 if store.close_open_episodes(len(self), self._is_full):
                     self._bump_own()
+        self._mirror.end_open()  # what a writer's open read before its rows were filled is let go
 
     def _load_rows(self, attrs: dict) -> None:
         record = attrs
