@@ -600,3 +600,19 @@ def test_summary(tmp_path, transitions):
     assert info["envs"] == ("FetchPush-v4",)
     assert abs(info["success_rate"] - 5 / 35) < 1e-6
     assert info["bytes_on_disk"] > 0
+
+
+def test_a_one_row_slice_with_its_stop_left_out_is_committed_and_closes(tmp_path):
+    """``set(slice(9, None), one_row)``: committed like ``LazyTensorStorage`` counts it (len 4, last cursor 9);
+    the open slice used to kill the writer thread in the commit record, and ``close()`` waited for it forever."""
+    path = str(tmp_path / "m.zarr")
+    st = ZarrStorage(path, 10, goal_conditioned=False, env="FetchReach-v4")
+    st.set(slice(0, 3), TensorDict({"a": torch.arange(3.0)}, [3]))
+    st.set(slice(9, None), TensorDict({"a": torch.tensor([9.0])}, [1]))
+    ref = LazyTensorStorage(10)
+    ref.set(slice(0, 3), TensorDict({"a": torch.arange(3.0)}, [3]))
+    ref.set(slice(9, None), TensorDict({"a": torch.tensor([9.0])}, [1]))
+    st.close()
+    with ZarrStorage(path, read_only=True) as reader:
+        assert len(reader) == len(ref) == 4
+        assert reader.record()["last_cursor"] == 9

@@ -324,8 +324,10 @@ class CommitEngine:
             overwrite = any(lo < committed0 for lo in self.dirty.values())
             everything = everything or overwrite
             chunks = sorted(self.dirty) if everything else sorted(self._complete_chunks())
-            try:  # a snapshot of a chunk a writer's fill cannot read raises (its damage): nothing was taken
+            try:  # a snapshot or record that raises (a chunk a writer's fill cannot read): nothing was taken, and
+                # the error is the commit's (a writer thread that died here left flush() waiting forever)
                 snapshots = {c: mirror.copy_chunk(c) for c in chunks}
+                meta = self.record() if everything else None
             except BaseException as err:
                 self.error = err
                 self.flush_done = max(self.flush_done, target)
@@ -334,7 +336,6 @@ class CommitEngine:
                     raise
                 return
             taken = {c: self.dirty.pop(c) for c in chunks}
-            meta = self.record() if everything else None
             if overwrite:  # every journalled commit changes the record, even one that rewrites rows in place
                 meta[OVERWRITES] = self.overwrites + 1
             if everything:

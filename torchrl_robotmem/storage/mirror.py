@@ -320,8 +320,8 @@ class RamMirror:
             columns = self._columns
             for key, value in data.items(include_nested=True, leaves_only=True):
                 columns[key][cursor].copy_(value)
-            if self.rows is not None:
-                self.rows.written(cursor.stop * self._packed.stride(0))  # the next pages mapped ahead
+            if self.rows is not None:  # the next pages mapped ahead (a user's slice may leave its stop out)
+                self.rows.written(cursor.indices(self._packed.shape[0])[1] * self._packed.stride(0))
         else:
             self._views[cursor] = data
 

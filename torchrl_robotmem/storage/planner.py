@@ -166,6 +166,9 @@ def write_span(cursor, data, rows: torch.Tensor) -> tuple[Any, torch.Tensor | sl
         (slice(2, 5, None), slice(2, 5, None))
     """
     flat = rows.cpu().numpy()  # numpy: its small-array ops skip the dispatch of torch ops
+    if isinstance(cursor, slice) and len(flat) == 1:  # one row of a slice (its stop may be left out): made explicit
+        one = slice(int(flat[0]), int(flat[0]) + 1)
+        return one, one
     if len(flat) > 1 and int(flat[-1]) - int(flat[0]) == len(flat) - 1 and bool((np.diff(flat) == 1).all()):
         dirty = slice(int(flat[0]), int(flat[-1]) + 1)
         if not isinstance(cursor, tuple) and not isinstance(data, LazyStackedTensorDict):
