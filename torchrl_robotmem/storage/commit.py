@@ -329,9 +329,7 @@ class CommitEngine:
                 snapshots = {c: mirror.copy_chunk(c) for c in chunks}
                 meta = self.record() if everything else None
             except BaseException as err:
-                self.error = err
-                self.flush_done = max(self.flush_done, target)
-                self.cv.notify_all()
+                self._failed(err, target)  # (the condition's lock is reentrant)
                 if not self.background:
                     raise
                 return

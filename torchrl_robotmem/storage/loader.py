@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import os
 
-from .format import is_strict
+from .errors import IntegrityError, Problem
+from .format import chunk_keys, decode_chunks, is_strict
 
 __all__ = ["BACKGROUND_FILL_BYTES", "BACKGROUND_FILL_ENV", "OPEN_COLUMNS", "fill_in_background", "load_rows"]
 
@@ -73,9 +74,6 @@ OPEN_COLUMNS = ("episode", "run", "next/done")
 def _damaged(handle, mirror, n0: int, failure: tuple | None) -> None:
     """A writer's fill met a chunk it cannot read: raised by that read and every later one, naming it as the
     synchronous load does (a missing file, a checksum that does not match, a chunk that does not decode)."""
-    from .errors import IntegrityError, Problem
-    from .format import chunk_keys, decode_chunks
-
     problems = []
     c, paths = failure if failure is not None else (None, [])
     for path in paths:
