@@ -407,6 +407,11 @@ class GoalRewardFn:
             return -(distance > env.distance_threshold).float()
         return (-distance).float()
 
+    @property
+    def distance_threshold(self) -> float | None:
+        """The task's success distance between goals (Fetch, HandReach), or ``None`` (a task comparing rotations)."""
+        return float(self._unwrapped().distance_threshold) if self.distance_based else None
+
     def success(self, td: TensorDictBase) -> torch.Tensor:
         """Returns ``is_success`` (float32 ``0./1.``, shape ``(*B,)``, like the env's)."""
         env = self._unwrapped()

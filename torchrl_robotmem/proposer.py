@@ -42,6 +42,7 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable, Mapping
@@ -78,6 +79,11 @@ class GoalProposer(Transform):
        is found (exact, :meth:`GoalIndex.search <torchrl_robotmem.goal_index.GoalIndex.search>`);
     3. the candidate with the largest such distance (the lowest density) is the goal.
 
+    With ``reached_in=m``, only candidates the agent reaches some of the time compete: goals within
+    ``reach_radius`` of rows of at least ``m`` different stored episodes (MEGA filters its candidates
+    on a learned value; here the memory counts). Where no candidate of a proposal qualifies, those
+    reached in the most episodes compete (then the lowest density among them).
+
     Until the memory holds ``warmup_rows`` rows, and in the other episodes, the env's own goal is kept.
     The episode's ``desired_goal``, ``("next", "desired_goal")``, ``("next", "reward")`` and
     ``("next", "is_success")`` are rewritten for the goal pursued at every step. Put it on the
@@ -111,6 +117,11 @@ class GoalProposer(Transform):
             MEGA) or ``"near_goal"`` (the stored achieved goals nearest the env's goal of the episode,
             so the proposal is the sparsest remembered goal on the way to the task's own goals).
             Default: ``"uniform"``.
+        reached_in (int): the episodes (at least) in which the memory reached a goal within
+            ``reach_radius`` of a candidate for it to compete; ``0`` keeps every candidate. Needs the
+            memory's episode ids (a :class:`~torchrl_robotmem.ZarrStorage`). Default: ``0``.
+        reach_radius (float, optional): the distance that counts as reaching a goal. Default: the
+            task's success distance (``distance_threshold``: 0.05 for Fetch, 0.01 for HandReach).
         seed (int, optional): seeds the transform's own generator (candidate draws and the ``rate``
             coin). Default: ``None`` (drawn from torch's global generator at the first proposal).
 
@@ -137,13 +148,20 @@ class GoalProposer(Transform):
         metric: str | GoalMetric | Callable = "euclidean",
         filter: RowFilter | Mapping[str, Any] | None = None,
         candidates: str = "uniform",
+        reached_in: int = 0,
+        reach_radius: float | None = None,
         seed: int | None = None,
     ) -> None:
-        for name, value, low in (("num_candidates", num_candidates, 1), ("k", k, 1), ("warmup_rows", warmup_rows, 0)):
+        for name, value, low in (("num_candidates", num_candidates, 1), ("k", k, 1), ("warmup_rows", warmup_rows, 0),
+                                 ("reached_in", reached_in, 0)):
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}.")
         if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0.0 <= float(rate) <= 1.0:
             raise ValueError(f"rate must be a probability in [0, 1], got {rate!r}.")
+        if reach_radius is not None and (isinstance(reach_radius, bool) or not isinstance(reach_radius, (int, float))
+                                         or not float(reach_radius) > 0):
+            raise ValueError(f"reach_radius must be a distance > 0 (or None: the task's success distance), "
+                             f"got {reach_radius!r}.")
         if candidates not in CANDIDATES:
             raise ValueError(f"candidates must be one of {CANDIDATES}, got {candidates!r}.")
         if not isinstance(env, str) or not env:
@@ -160,6 +178,8 @@ class GoalProposer(Transform):
         self.reward_key, self.success_key = unravel_key(reward_key), unravel_key(success_key)
         self.metric = metric
         self.candidates = candidates
+        self.reached_in = reached_in
+        self._reach_radius = None if reach_radius is None else float(reach_radius)
         self.seed = seed
         self._reward = GoalRewardFn(env, achieved_goal_key=achieved_key, desired_goal_key=in_key)
         self._generator: torch.Generator | None = None
@@ -180,6 +200,17 @@ class GoalProposer(Transform):
     def storage(self) -> Storage:
         """The storage proposed from (a path is opened ``read_only`` on first access)."""
         return self._source.storage
+
+    @property
+    def reach_radius(self) -> float:
+        """The distance within which a stored goal counts as reaching a candidate (see ``reached_in``)."""
+        if self._reach_radius is None:
+            radius = self._reward.distance_threshold
+            if radius is None:
+                raise ValueError(f"{self.env_id} has no success distance between goals: give reach_radius= "
+                                 f"to count the episodes that reached a candidate.")
+            self._reach_radius = radius
+        return self._reach_radius
 
     @property
     def index(self) -> GoalIndex:
@@ -233,10 +264,20 @@ class GoalProposer(Transform):
             # k + 1: a candidate is a stored row itself, at distance 0 from its own goal
             dist, _, mask = self.index.search(goals, self.k + 1, filter=self.filter)
             kth = torch.where(mask, dist, torch.full_like(dist, float("inf"))).amax(-1)  # too few rows: sparse
-            best = kth.reshape(n, width).argmax(-1)
+            kth = kth.reshape(n, width)
+            if self.reached_in:  # only candidates reached in reached_in episodes (or the most there are) compete
+                reached = self._episodes_reaching(goals).reshape(n, width)
+                kth = torch.where(reached == reached.amax(-1, keepdim=True), kth, torch.full_like(kth, -float("inf")))
+            best = kth.argmax(-1)
             return goals.reshape(n, width, -1)[torch.arange(n), best]
         finally:
             self.seconds += time.perf_counter() - start
+
+    def _episodes_reaching(self, goals: torch.Tensor) -> torch.Tensor:
+        """For each goal, the stored episodes (up to ``reached_in``) with a row within ``reach_radius`` of it."""
+        reach = dataclasses.replace(self.filter, one_per_episode=True, max_distance=self.reach_radius)
+        _, _, found = self.index.search(goals, self.reached_in, filter=reach)
+        return found.sum(-1)
 
     def _candidates(self, m: int) -> torch.Tensor | None:
         """``m`` rows drawn uniformly among the stored rows ``filter`` keeps (``None``: no such row)."""
@@ -313,4 +354,5 @@ class GoalProposer(Transform):
         memory = self.memory if isinstance(self.memory, str) else type(self.memory).__name__
         return (f"{type(self).__name__}(memory={memory!r}, env={self.env_id!r}, num_candidates={self.num_candidates}, "
                 f"k={self.k}, rate={self.rate}, warmup_rows={self.warmup_rows}"
-                + (f", candidates={self.candidates!r})" if self.candidates != "uniform" else ")"))
+                + (f", candidates={self.candidates!r}" if self.candidates != "uniform" else "")
+                + (f", reached_in={self.reached_in})" if self.reached_in else ")"))

@@ -168,7 +168,7 @@ def episode_seed(seed: int, r: int, e: int) -> int:
 
 def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, seed: int, log,
          episodes: int = 100, memory_out: str | None = None, propose_rate: float = 0.0, stop_at: float | None = None,
-         candidates: str = "uniform") -> list[dict]:
+         candidates: str = "uniform", reached_in: int = 0) -> list[dict]:
     """Clone, then ``rounds`` of: 100 noisy episodes with the clone, added to the data, cloned further.
 
     Each clone is evaluated on ``episodes`` deterministic episodes (the goals of :func:`eval_goals`).
@@ -184,6 +184,7 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
         stop_at: stop after the first evaluation at or above this success (a second run: frames it needed).
         candidates: the proposer's candidates: ``"uniform"`` (among every stored row) or ``"near_goal"``
             (the 100 stored achieved goals nearest the goal the env drew for the episode).
+        reached_in: the proposer's ``reached_in``: only goals the memory reached in this many episodes compete.
     """
     torch.manual_seed(seed)
     gen, rng = torch.Generator().manual_seed(seed), np.random.default_rng(seed)
@@ -198,7 +199,8 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
     if propose_rate:
         if memory is None:
             raise ValueError("propose_rate > 0 proposes from memory_out: give --memory-out")
-        proposer = GoalProposer(memory, ENV, rate=propose_rate, warmup_rows=0, seed=seed, candidates=candidates)
+        proposer = GoalProposer(memory, ENV, rate=propose_rate, warmup_rows=0, seed=seed, candidates=candidates,
+                                reached_in=reached_in)
     coin = torch.Generator().manual_seed(seed + 1)
     results, new_frames, cpu = [], 0, time.process_time()
     for r in range(rounds + 1):
@@ -210,7 +212,8 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
                         "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
                         "propose_rate": propose_rate, "outcomes": "".join("1" if o else "0" for o in outcomes),
                         **({"proposed": proposer.proposed, "propose_s": round(proposer.seconds, 2),
-                            "candidates": candidates} if proposer else {})})
+                            "candidates": candidates, **({"reached_in": reached_in} if reached_in else {})}
+                           if proposer else {})})
         log(results[-1])
         if r == rounds or (stop_at is not None and success >= stop_at):
             break
@@ -309,6 +312,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="gcsl: a new memory of every row the rounds learn from (the proposer's; a second run's)")
     parser.add_argument("--candidates", choices=["uniform", "near_goal"], default="uniform",
                         help="gcsl: the proposer's candidates (GoalProposer(candidates=...))")
+    parser.add_argument("--reached-in", type=int, default=0,
+                        help="gcsl: the proposer's reached_in (only goals reached in this many episodes compete)")
     parser.add_argument("--propose-rate", type=float, default=0.0,
                         help="gcsl: share of collection episodes that pursue a GoalProposer's goal (0: the control)")
     parser.add_argument("--stop-at", type=float, default=None, help="gcsl: stop at this evaluated success")
@@ -339,7 +344,7 @@ def main(argv: list[str] | None = None) -> None:
     for horizon in args.horizon:
         gcsl(args.memories, horizon, args.steps, args.rounds if args.what == "gcsl" else 0, args.sigma, args.seed, log,
              episodes=args.episodes, memory_out=args.memory_out, propose_rate=args.propose_rate, stop_at=args.stop_at,
-             candidates=args.candidates)
+             candidates=args.candidates, reached_in=args.reached_in)
 
 
 if __name__ == "__main__":

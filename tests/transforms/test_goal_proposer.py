@@ -103,6 +103,43 @@ def test_near_goal_in_an_env_proposes_near_each_reset_goal(reach_memory):
     assert proposer.proposed == 2
 
 
+@pytest.fixture(scope="module")
+def reached(tmp_path_factory):
+    """One row an episode: 20 goals in a tight cluster, outlier A reached in one episode, outliers B in three."""
+    g = torch.Generator().manual_seed(0)
+    center = torch.tensor([1.3, 0.75, 0.5])
+    cluster = center + 0.002 * torch.randn(20, 3, generator=g)
+    a = center + torch.tensor([[0.3, 0.0, 0.0]])  # the sparsest goal: reached once
+    b = center + torch.tensor([0.0, 0.2, 0.0]) + 0.003 * torch.randn(3, 3, generator=g)  # sparse, reached 3 times
+    path = str(tmp_path_factory.mktemp("reached") / "m.zarr")
+    with ZarrStorage(path, 100, env=ENV) as s:
+        s.set(slice(0, 24), _goal_rows(torch.cat([cluster, a, b])))
+    return path, cluster, a, b
+
+
+def test_reached_in_proposes_only_goals_the_memory_reached_in_that_many_episodes(reached):
+    """MEGA's filter, counted in the memory: the sparsest goal reached once loses to one reached in 3 episodes."""
+    path, cluster, a, b = reached
+
+    def propose(**kw):
+        return GoalProposer(path, ENV, num_candidates=500, k=2, warmup_rows=1, seed=3, **kw).propose(8)
+
+    def among(goals, group):
+        return bool((goals[:, None, :] == group[None, :, :]).all(-1).any(-1).all())
+
+    assert among(propose(), a)  # no filter: the sparsest goal, reached in one episode only
+    assert among(propose(reached_in=2), b)  # reached in 3 episodes: the sparsest that qualifies
+    assert among(propose(reached_in=4), cluster)  # only the cluster's goals were reached in 4 episodes
+    assert among(propose(reached_in=2, reach_radius=1e-4), a)  # no two episodes that close: all tie, density decides
+    assert among(propose(reached_in=50), cluster)  # none qualifies: those reached in the most episodes compete
+    proposer = GoalProposer(path, ENV, reached_in=2)
+    assert proposer.reach_radius == pytest.approx(0.05)  # FetchReach's success distance
+    assert "reached_in=2" in repr(proposer)
+    for bad in ({"reached_in": -1}, {"reached_in": 1.5}, {"reach_radius": 0.0}, {"reach_radius": "near"}):
+        with pytest.raises(ValueError, match="reached_in|reach_radius"):
+            GoalProposer(path, ENV, **bad)
+
+
 def test_no_proposal_below_warmup_and_rate_zero_keeps_the_env_goals(clustered):
     path, _ = clustered
     assert GoalProposer(path, ENV, warmup_rows=1001).propose(3) is None
