@@ -830,18 +830,23 @@ HAND43_CONTROL = Runs("SAC+HER from scratch", "hand43-control-s{}", seeds=(0,))
 HAND43_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "hand43-propose-s{}", seeds=(0,))
 
 
-def _proposer_pilot(root: Path, control_arm: Runs, proposer_arm: Runs) -> tuple[str, str, dict]:
+def _proposer_pilot(root: Path, control_arm: Runs, proposer_arm: Runs,
+                    every: int | None = None) -> tuple[str, str, dict]:
     """One seed an arm, the same recipe with and without the proposer: the headline, the per-evaluation table and
-    the proposer's counters (``proposer`` of the run's summary, archived as ``<run>-summary.json`` beside it)."""
+    the proposer's counters (``proposer`` of the run's summary, archived as ``<run>-summary.json`` beside it).
+
+    ``every``: the table shows the evaluations at multiples of this many frames (and a "best" column), not all."""
     from recipes.her.tools.paired import compare_arms
 
     control, proposer = control_arm.read(root), proposer_arm.read(root)
     curves = {arm.label: arm_curve for arm, arm_curve in
               ((control_arm, control_arm.curve(root, 0)), (proposer_arm, proposer_arm.curve(root, 0)))}
     frames = sorted(next(iter(curves.values())))
-    rows = [[label, *[f2(c[f]) for f in frames], cpu(arm.cpu[0])]
+    shown = frames if every is None else [f for f in frames if f % every == 0]
+    best = [] if every is None else ["best"]
+    rows = [[label, *[f2(c[f]) for f in shown], *([f2(max(c.values()))] if best else []), cpu(arm.cpu[0])]
             for (label, c), arm in zip(curves.items(), (control, proposer))]
-    t = table(["arm (seed 0)", *[kf(f) for f in frames], "CPU-s"], rows)
+    t = table(["arm (seed 0)", *[kf(f) for f in shown], *best, "CPU-s"], rows)
     name = proposer_arm.pattern.format(0)
     summary = json.loads((root / RUNS / f"{name}-summary.json").read_text())["proposer"]
     ep = compare_arms(proposer.outcomes, control.outcomes)["test"]
@@ -870,6 +875,20 @@ def pnp_proposer_60k(root: Path) -> str:
     head, t, summary = _proposer_pilot(root, PNP43_60K_CONTROL, PNP43_60K_PROPOSER)
     per_goal = 1000 * summary["seconds"] / max(summary["proposed"], 1)
     return f"{head} That is {per_goal:.0f} ms a proposed goal.\n\n{t}"
+
+
+PNP43_150K_CONTROL = Runs("SAC+HER from scratch", "pnp43-150k-control-s{}", seeds=(0,))
+PNP43_150K_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-150k-propose-s{}", seeds=(0,))
+
+
+def pnp_proposer_150k(root: Path) -> str:
+    """Issue 43 on FetchPickAndPlace to 150k frames (the goal's budget): seed 0, the 60k runs resumed
+    (archives ``pnp43-150k-{control,propose}-s0.json``, the runs' summaries beside them)."""
+    head, t, summary = _proposer_pilot(root, PNP43_150K_CONTROL, PNP43_150K_PROPOSER, every=15000)
+    per_goal = 1000 * summary["seconds"] / max(summary["proposed"], 1)
+    return (f"{head} That is {per_goal:.0f} ms a proposed goal (the proposer's counters start again in a resumed "
+            f"process: these are the last segment's, 75k to 150k frames). The table shows the evaluations every 15k "
+            f"frames (of one every 2.5k) and the best of them all.\n\n{t}")
 
 
 def hand_proposer_pilot(root: Path) -> str:
@@ -939,6 +958,28 @@ def hand_gcsl_proposer_near(root: Path) -> str:
             .replace("\n\n", f" {slash(per_goal, lambda x: f'{x:.0f}')} ms a proposed goal.\n\n", 1))
 
 
+HAND43_GCSL_LONG = HandArm("GCSL, seed 0, to 400k frames", "hand43-gcsl-long-control-s0.jsonl", "gcsl")
+#: the frames in all at which the long run's table shows the evaluated success
+GCSL_LONG_FRAMES = [10000, 50000, 100000, 150000, 200000, 250000, 300000, 350000, 400000]
+
+
+def hand_gcsl_long(root: Path) -> str:
+    """Issue 43, goal 4 on HandReach: the control's GCSL (seed 0) carried past 150k frames (archive
+    ``hand43-gcsl-long-control-s0.jsonl``; its first 28 rounds repeat the control run of the table above)."""
+    rounds = {d["memory_rows"]: d for d in HAND43_GCSL_LONG.rounds(root, 0)}
+    last = rounds[max(rounds)]
+    best = max(rounds.values(), key=lambda d: (d["success"], -d["memory_rows"]))
+    shown = [f for f in GCSL_LONG_FRAMES if f in rounds]
+    t = table(["frames in all (10k random first)", *[kf(f) for f in shown], "best", "CPU-s of the rounds"],
+              [[HAND43_GCSL_LONG.label, *[f2(rounds[f]["success"]) for f in shown], f2(best["success"]),
+                cpu(last["cpu_s"])]])
+    tail = [d["success"] for f, d in sorted(rounds.items()) if f > max(rounds) - 50000]  # the last 10 rounds
+    head = (f"**At {kf(max(rounds))} frames in all: {f2(last['success'])}; the best evaluation {f2(best['success'])}, "
+            f"at {kf(best['memory_rows'])}; the last 10 rounds {f2(min(tail))}-{f2(max(tail))}** (one seed, the "
+            f"control's settings; the first 28 rounds repeat the control's seed 0 exactly).")
+    return f"{head}\n\n{t}"
+
+
 def hand_gcsl_second(root: Path) -> str:
     """Issue 43 goal 3 on HandReach: a second run (fresh networks) on each first run's memory: the new frames it
     needed to reach the first run's final success (the first run: 150k frames in all)."""
@@ -967,6 +1008,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "hand_gcsl_second": hand_gcsl_second,
     "pnp_proposer_pilot": pnp_proposer_pilot,
     "pnp_proposer_60k": pnp_proposer_60k,
+    "pnp_proposer_150k": pnp_proposer_150k,
+    "hand_gcsl_long": hand_gcsl_long,
     "hand_proposer_pilot": hand_proposer_pilot,
     "reach_second": reach_second,
     "push_clone": push_clone,
