@@ -107,6 +107,9 @@ def _runs() -> dict[str, list[str]]:
         # issue 43: the same run with GoalProposer choosing each training episode's goal (its control: scratch-pnp,
         # run again beside it with the same code; --root bench_results/i43/pnp60)
         runs[f"propose-pnp-s{seed}"] = ["env=pick_and_place", f"seed={seed}", "memory.propose.enabled=true"]
+        # ... seeds 1 and 2 of the 150k-frame comparison (seed 0: the two runs above resumed to 150k)
+        runs[f"propose150-pnp-s{seed}"] = [*runs[f"propose-pnp-s{seed}"], "collector.total_frames=150000"]
+        runs[f"scratch150-pnp-s{seed}"] = [*runs[f"scratch-pnp-s{seed}"], "collector.total_frames=150000"]
         # the cloned actor on PickAndPlace (prior=clone): from its own default-parameter memory, and from FetchPush's
         # (cross-task); stops at the first evaluation at or above 0.9 (frame 0 when the clone alone does it)
         clone = ["env=pick_and_place", "algo=td3", f"seed={seed}", "prior=clone", "collector.init_random_frames=0"]
