@@ -616,3 +616,22 @@ def test_a_one_row_slice_with_its_stop_left_out_is_committed_and_closes(tmp_path
     with ZarrStorage(path, read_only=True) as reader:
         assert len(reader) == len(ref) == 4
         assert reader.record()["last_cursor"] == 9
+
+
+def test_a_strided_slice_with_its_stop_left_out_is_committed_as_torchrl_counts_it(tmp_path):
+    """``set(slice(0, None, 2), five_rows)``: the commit record's last row is TorchRL's own resolution of the
+    cursor (row 8), not ``stop - 1`` of an open slice (a ``TypeError`` in every commit, and nothing committed)."""
+    path = str(tmp_path / "m.zarr")
+    rows = TensorDict({"a": torch.arange(5.0) + 10}, [5])
+    st = ZarrStorage(path, 10, goal_conditioned=False, env="FetchReach-v4")
+    st.set(0, TensorDict({"a": torch.tensor(1.0)}, []))
+    st.set(slice(0, None, 2), rows)
+    ref = LazyTensorStorage(10)
+    ref.set(0, TensorDict({"a": torch.tensor(1.0)}, []))
+    ref.set(slice(0, None, 2), rows)
+    st.flush()
+    st.close()
+    with ZarrStorage(path, read_only=True) as reader:
+        assert len(reader) == len(ref)
+        assert reader.record()["last_cursor"] == ref._last_cursor_index == 8
+        assert reader[[0, 2, 4]]["a"].tolist() == [10.0, 11.0, 12.0]

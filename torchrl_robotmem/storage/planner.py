@@ -36,7 +36,7 @@ from .schema import DataKind, check_against, split_constants
 from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag, env_names_of
 
 __all__ = ["MAX_NAME_BYTES", "StoreView", "WritePlan", "check_constants", "check_key_names", "completes_chunk",
-           "cursor_rows", "is_int_cursor", "key_name_problem", "last_index", "check_rows", "plan_write", "validate",
+           "cursor_rows", "is_int_cursor", "key_name_problem", "check_rows", "plan_write", "validate",
            "write_span"]
 
 DONE_KEY = ("next", "done")
@@ -198,26 +198,6 @@ def completes_chunk(rows: torch.Tensor, chunk_rows: int) -> bool:
     """
     first, last = int(rows[0]), int(rows[-1])
     return (last + 1) % chunk_rows == 0 or len(rows) > chunk_rows or first // chunk_rows != last // chunk_rows
-
-
-def last_index(last) -> int | None:
-    """The last row of a TorchRL writer cursor (``_last_cursor``: int, slice, range, list, tensor), or ``None``.
-
-    Example:
-        >>> last_index(slice(3, 7)), last_index([1, 2]), last_index(None)
-        (6, 2, None)
-    """
-    if last is None:
-        return None
-    if isinstance(last, torch.Tensor):
-        return int(last.reshape(-1)[-1]) if last.numel() else None
-    if isinstance(last, slice):
-        return last.stop - 1
-    if isinstance(last, range):
-        return last[-1] if len(last) else None
-    if isinstance(last, (list, tuple)):
-        return int(last[-1]) if last else None
-    return int(last)
 
 
 def expand_tag(value, lead: torch.Size, batch: torch.Size) -> torch.Tensor:

@@ -21,7 +21,7 @@ from .arguments import check_arguments
 from .checkpointer import ZarrCheckpointer
 from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
-from .planner import StoreView, check_rows, completes_chunk, cursor_rows, last_index, plan_write, write_span
+from .planner import StoreView, check_rows, completes_chunk, cursor_rows, plan_write, write_span
 from .schema import DataKind
 from .state import rows_of_state, source_kind, state_rows
 from .store import MemoryStore
@@ -120,7 +120,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         # TorchRL's max_size: an unbounded memory's is one no writer index wraps around (the rows: storage.capacity)
         super().__init__(max_size=UNBOUNDED_SIZE if unbounded else stored_max, device=device,
                          ndim=int(attrs.get("ndim", 1)), compilable=compilable)
-        record = lambda: store.meta_snapshot(len(self), last_index(self._last_cursor))  # noqa: E731
+        # the last written row as TorchRL's set() resolved it (a slice against max_size, a tensor's last element)
+        record = lambda: store.meta_snapshot(len(self), self._last_cursor_index)  # noqa: E731
         store.build(stored_max, ndim=self.ndim, device=self.device, length=self.__len__, record=record,
                     commit_interval=commit_interval, background=background, codec=codec, attrs=attrs)
         self._own_writes = 0  # depth of this class's own writes (see _bump_mutation_revision)
