@@ -118,10 +118,13 @@ class GoalProposer(Transform):
             so the proposal is the sparsest remembered goal on the way to the task's own goals).
             Default: ``"uniform"``.
         reached_in (int): the episodes (at least) in which the memory reached a goal within
-            ``reach_radius`` of a candidate for it to compete; ``0`` keeps every candidate. Needs the
-            memory's episode ids (a :class:`~torchrl_robotmem.ZarrStorage`). Default: ``0``.
+            ``reach_radius`` of a candidate for it to compete; ``0`` keeps every candidate. A candidate
+            is a stored row, so its own episode counts: ``1`` keeps every candidate too, ``2`` asks
+            for one more episode. Needs the memory's episode ids (the ``episode`` column a
+            :class:`~torchrl_robotmem.ZarrStorage` writes). Default: ``0``.
         reach_radius (float, optional): the distance that counts as reaching a goal. Default: the
-            task's success distance (``distance_threshold``: 0.05 for Fetch, 0.01 for HandReach).
+            task's success distance (``distance_threshold``: 0.05 for Fetch, 0.01 for HandReach; a
+            task comparing rotations has none, and needs one given).
         seed (int, optional): seeds the transform's own generator (candidate draws and the ``rate``
             coin). Default: ``None`` (drawn from torch's global generator at the first proposal).
 
@@ -129,6 +132,13 @@ class GoalProposer(Transform):
         >>> from torchrl_robotmem import GoalProposer
         >>> GoalProposer("memory/pickandplace.zarr", "FetchPickAndPlace-v4", num_candidates=50, k=5, rate=0.5)
         GoalProposer(memory='memory/pickandplace.zarr', env='FetchPickAndPlace-v4', num_candidates=50, k=5, rate=0.5, warmup_rows=1000)
+
+        MEGA's filter counted in the memory: only goals reached in at least 2 stored episodes compete
+        (within the task's success distance, by default):
+
+        >>> mega = GoalProposer("memory/pickandplace.zarr", "FetchPickAndPlace-v4", rate=0.5, reached_in=2)
+        >>> mega.reached_in, mega.reach_radius
+        (2, 0.05)
     """
 
     def __init__(
@@ -159,8 +169,8 @@ class GoalProposer(Transform):
         if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0.0 <= float(rate) <= 1.0:
             raise ValueError(f"rate must be a probability in [0, 1], got {rate!r}.")
         if reach_radius is not None and (isinstance(reach_radius, bool) or not isinstance(reach_radius, (int, float))
-                                         or not float(reach_radius) > 0):
-            raise ValueError(f"reach_radius must be a distance > 0 (or None: the task's success distance), "
+                                         or not 0 < float(reach_radius) < float("inf")):
+            raise ValueError(f"reach_radius must be a finite distance > 0 (or None: the task's success distance), "
                              f"got {reach_radius!r}.")
         if candidates not in CANDIDATES:
             raise ValueError(f"candidates must be one of {CANDIDATES}, got {candidates!r}.")
@@ -182,6 +192,10 @@ class GoalProposer(Transform):
         self._reach_radius = None if reach_radius is None else float(reach_radius)
         self.seed = seed
         self._reward = GoalRewardFn(env, achieved_goal_key=achieved_key, desired_goal_key=in_key)
+        if reached_in and reach_radius is None and not self._reward.distance_based:
+            raise ValueError(f"reached_in={reached_in}: {env} has no success distance between goals (its goals are "
+                             f"compared as rotations); give reach_radius= to count the episodes that reached a "
+                             f"candidate, or leave reached_in=0.")
         self._generator: torch.Generator | None = None
         self._index: GoalIndex | None = None
         self._goals: torch.Tensor | None = None  # the goal each env pursues, [*B, goal_dim]
@@ -204,12 +218,8 @@ class GoalProposer(Transform):
     @property
     def reach_radius(self) -> float:
         """The distance within which a stored goal counts as reaching a candidate (see ``reached_in``)."""
-        if self._reach_radius is None:
-            radius = self._reward.distance_threshold
-            if radius is None:
-                raise ValueError(f"{self.env_id} has no success distance between goals: give reach_radius= "
-                                 f"to count the episodes that reached a candidate.")
-            self._reach_radius = radius
+        if self._reach_radius is None:  # the env is built for it (checked at construction: distance-based)
+            self._reach_radius = self._reward.distance_threshold
         return self._reach_radius
 
     @property
@@ -250,7 +260,8 @@ class GoalProposer(Transform):
                 if near is None or near.shape[0] != n:
                     raise ValueError(f"candidates='near_goal' proposes near the env's goals: pass near of shape "
                                      f"[{n}, goal_dim], got {None if near is None else list(near.shape)}.")
-                _, rows, found = self.index.search(near.reshape(n, -1).float(), self.num_candidates, filter=self.filter)
+                width = min(self.num_candidates, len(self._source))  # more than the rows stored: the same rows
+                _, rows, found = self.index.search(near.reshape(n, -1).float(), width, filter=self.filter)
                 if not bool(found[:, 0].all()):  # a goal with no stored goal near it (a filter's max_distance)
                     return None
                 # a missing neighbour (fewer stored rows than candidates) repeats the nearest one
@@ -262,7 +273,8 @@ class GoalProposer(Transform):
             width = rows.numel() // n
             goals = self._source.column(self.goal_key)[rows.reshape(-1)].reshape(n * width, -1).float()
             # k + 1: a candidate is a stored row itself, at distance 0 from its own goal
-            dist, _, mask = self.index.search(goals, self.k + 1, filter=self.filter)
+            # (at most one more than the rows stored: a k beyond them answers the same, allocating nothing for it)
+            dist, _, mask = self.index.search(goals, min(self.k + 1, len(self._source) + 1), filter=self.filter)
             kth = torch.where(mask, dist, torch.full_like(dist, float("inf"))).amax(-1)  # too few rows: sparse
             kth = kth.reshape(n, width)
             if self.reached_in:  # only candidates reached in reached_in episodes (or the most there are) compete
@@ -276,7 +288,12 @@ class GoalProposer(Transform):
     def _episodes_reaching(self, goals: torch.Tensor) -> torch.Tensor:
         """For each goal, the stored episodes (up to ``reached_in``) with a row within ``reach_radius`` of it."""
         reach = dataclasses.replace(self.filter, one_per_episode=True, max_distance=self.reach_radius)
-        _, _, found = self.index.search(goals, self.reached_in, filter=reach)
+        try:  # no more episodes than rows: a reached_in beyond them answers the same
+            _, _, found = self.index.search(goals, min(self.reached_in, len(self._source)), filter=reach)
+        except KeyError as e:
+            raise ValueError(f"reached_in={self.reached_in} counts the episodes that reached a goal, and the memory "
+                             f"has no episode ids to count ({e}): propose from a ZarrStorage (it tags every row "
+                             f"with its episode), or leave reached_in=0.") from e
         return found.sum(-1)
 
     def _candidates(self, m: int) -> torch.Tensor | None:

@@ -14,7 +14,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
-from torchrl.data import TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs.utils import step_mdp
 from training.test_her_recipe import run_recipe
 
@@ -138,6 +138,38 @@ def test_reached_in_proposes_only_goals_the_memory_reached_in_that_many_episodes
     for bad in ({"reached_in": -1}, {"reached_in": 1.5}, {"reach_radius": 0.0}, {"reach_radius": "near"}):
         with pytest.raises(ValueError, match="reached_in|reach_radius"):
             GoalProposer(path, ENV, **bad)
+
+
+def test_reached_in_on_an_unbounded_memory_huge_counts_allocate_nothing_and_errors_say_what_is_missing(
+        tmp_path, reached):
+    """An unbounded memory's capacity is 2**50 rows: a reached_in, k or near_goal count far above the rows stored
+    answers as the rows do (it used to allocate the count: 745 GiB for reached_in=10**9). A filter that cannot be
+    counted is refused by name: a task with no success distance at construction, a memory with no episode ids at
+    the first proposal."""
+    _, cluster, a, b = reached
+    goals = torch.cat([cluster, a, b])
+    path = str(tmp_path / "unbounded.zarr")
+    with ZarrStorage(path, env=ENV) as s:  # no max_size: grows as rows arrive
+        s.set(slice(0, 24), _goal_rows(goals))
+
+    def propose(**kw):
+        return GoalProposer(path, ENV, num_candidates=500, warmup_rows=1, seed=3, **kw).propose(8)
+
+    assert _stored(propose(k=2, reached_in=10**9), cluster)  # as reached_in=50 on the bounded store
+    # k beyond the rows: every candidate is as sparse as any (no k-th neighbour), so only the filter decides:
+    # goals reached in 2 episodes (the cluster's, B), never A
+    assert _stored(propose(k=10**9, reached_in=2), torch.cat([cluster, b]))
+    near = GoalProposer(path, ENV, num_candidates=10**9, k=2, warmup_rows=1, seed=3, candidates="near_goal")
+    assert _stored(near.propose(1, near=a), a)
+    with pytest.raises(ValueError, match="reach_radius must be a finite"):
+        GoalProposer(path, ENV, reached_in=2, reach_radius=float("inf"))
+    with pytest.raises(ValueError, match="reached_in=2: HandManipulateBlockRotateZ-v1 has no success distance"):
+        GoalProposer(path, "HandManipulateBlockRotateZ-v1", reached_in=2)
+    GoalProposer(path, "HandManipulateBlockRotateZ-v1", reached_in=2, reach_radius=0.1)  # given: accepted
+    plain = LazyTensorStorage(100)  # rows without the episode column ZarrStorage writes
+    plain.set(slice(0, 24), _goal_rows(goals))
+    with pytest.raises(ValueError, match="reached_in=2 counts the episodes .* no episode ids"):
+        GoalProposer(plain, ENV, warmup_rows=1, seed=3, reached_in=2).propose(1)
 
 
 def test_no_proposal_below_warmup_and_rate_zero_keeps_the_env_goals(clustered):
