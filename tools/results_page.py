@@ -390,6 +390,8 @@ HAND43_GCSL_PROPOSE = HandArm("GCSL + GoalProposer", "hand43-gcsl-propose.jsonl"
 HAND43_GCSL_QUARTER = HandArm("GCSL + GoalProposer, rate 0.25", "hand43-gcsl-propose25.jsonl", "gcsl", seeds=(0, 1, 2))
 HAND43_GCSL_NEAR = HandArm("GCSL + GoalProposer, near the env's goal", "hand43-gcsl-near.jsonl", "gcsl",
                            seeds=(0, 1, 2))
+HAND43_GCSL_REACHED = HandArm("GCSL + GoalProposer, reached in 2 episodes", "hand43-gcsl-reached2.jsonl", "gcsl",
+                              seeds=(0, 1, 2))
 HAND43_SECOND = {"control": HandArm("second run, GCSL", "hand43-gcsl-second-control.jsonl", "gcsl", seeds=(0, 1, 2)),
                  "propose": HandArm("second run, GCSL + GoalProposer", "hand43-gcsl-second-propose.jsonl", "gcsl",
                                     seeds=(0, 1, 2))}
@@ -931,14 +933,19 @@ def hand_gcsl_proposer(root: Path) -> str:
     return head + "\n\n" + _gcsl_rounds_table(root, [HAND43_GCSL_CONTROL, HAND43_GCSL_PROPOSE])
 
 
-def _gcsl_arm_against_control(root: Path, arm: HandArm, what: str) -> str:
-    """A later proposer arm, fixed before it ran, against the same control (and the first arm, rate 0.5)."""
+def _gcsl_arm_against_control(root: Path, arm: HandArm, what: str, cost: bool = False) -> str:
+    """A later proposer arm, fixed before it ran, against the same control (and the first arm, rate 0.5);
+    ``cost``: with the proposer's time a proposed goal (each seed's last round)."""
     control, other = HAND43_GCSL_CONTROL.read(root), arm.read(root)
     c = compare(other, control)
     half = HAND43_GCSL_PROPOSE.read(root)
     head = (f"**At {_frames_of(other)} frames in all: {slash(other.values)} {what}, {slash(control.values)} "
             f"without** (and {slash(half.values)} with the first arm, half of the episodes among every stored "
             f"goal, above). Run-level: {run_level(c)}. Episode-level: {episode_level(c)}.")
+    if cost:
+        lasts = [arm.rounds(root, seed)[-1] for seed in arm.seeds]
+        per_goal = [1000 * last["propose_s"] / last["proposed"] for last in lasts]
+        head += f" {slash(per_goal, lambda x: f'{x:.0f}')} ms a proposed goal."
     return head + "\n\n" + _gcsl_rounds_table(root, [arm])
 
 
@@ -952,10 +959,16 @@ def hand_gcsl_proposer_quarter(root: Path) -> str:
 def hand_gcsl_proposer_near(root: Path) -> str:
     """Issue 43 on HandReach: the third proposer arm, fixed before it ran (half of the collection episodes, the
     candidates the stored goals nearest the env's goal), against the same control."""
-    lasts = [HAND43_GCSL_NEAR.rounds(root, seed)[-1] for seed in HAND43_GCSL_NEAR.seeds]
-    per_goal = [1000 * last["propose_s"] / last["proposed"] for last in lasts]
-    return (_gcsl_arm_against_control(root, HAND43_GCSL_NEAR, "with the proposer's candidates near the env's goal")
-            .replace("\n\n", f" {slash(per_goal, lambda x: f'{x:.0f}')} ms a proposed goal.\n\n", 1))
+    return _gcsl_arm_against_control(root, HAND43_GCSL_NEAR, "with the proposer's candidates near the env's goal",
+                                     cost=True)
+
+
+def hand_gcsl_proposer_reached(root: Path) -> str:
+    """Issue 43 on HandReach: the fourth proposer arm, fixed before it ran (half of the collection episodes, only
+    candidates the memory reached within the success distance in at least 2 episodes: MEGA's filter counted in
+    the memory), against the same control."""
+    return _gcsl_arm_against_control(root, HAND43_GCSL_REACHED, "with the proposer's candidates limited to goals reached in "
+                                     "at least 2 stored episodes", cost=True)
 
 
 HAND43_GCSL_LONG = HandArm("GCSL, seed 0, to 400k frames", "hand43-gcsl-long-control-s0.jsonl", "gcsl")
@@ -1005,6 +1018,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "hand_gcsl_proposer": hand_gcsl_proposer,
     "hand_gcsl_proposer_quarter": hand_gcsl_proposer_quarter,
     "hand_gcsl_proposer_near": hand_gcsl_proposer_near,
+    "hand_gcsl_proposer_reached": hand_gcsl_proposer_reached,
     "hand_gcsl_second": hand_gcsl_second,
     "pnp_proposer_pilot": pnp_proposer_pilot,
     "pnp_proposer_60k": pnp_proposer_60k,

@@ -31,7 +31,9 @@ and the clone / gcsl lines of the result files, placed at the frames of the memo
     python -m experiments.her.hand_memory curves "GCSL=docs/runs/hand43-gcsl-control.jsonl" \
         "GCSL + GoalProposer, rate 0.5=docs/runs/hand43-gcsl-propose.jsonl" \
         "GCSL + GoalProposer, rate 0.25=docs/runs/hand43-gcsl-propose25.jsonl" \
-        "GCSL + GoalProposer near the env's goal, rate 0.5=docs/runs/hand43-gcsl-near.jsonl" --png docs/img/hand43_gcsl.png
+        "GCSL + GoalProposer near the env's goal, rate 0.5=docs/runs/hand43-gcsl-near.jsonl" \
+        "GCSL + GoalProposer reached in 2 episodes, rate 0.5=docs/runs/hand43-gcsl-reached2.jsonl" \
+        --png docs/img/hand43_gcsl.png
 """
 from __future__ import annotations
 
@@ -275,14 +277,16 @@ def curves(results: list[str], png: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    for colour, spec in zip(("tab:blue", "tab:orange", "tab:green", "tab:red"), results):
+    colours = plt.get_cmap("tab10")
+    for j, spec in enumerate(results):
         label, _, path = spec.rpartition("=")
         rows = [json.loads(line) for line in open(path) if line.strip()]
         for i, seed in enumerate(sorted({r["seed"] for r in rows})):
             pts = sorted((r for r in rows if r["seed"] == seed), key=lambda r: r["round"])
-            ax.plot([r["memory_rows"] / 1000 for r in pts], [r["success"] for r in pts], color=colour, alpha=0.8,
-                    linestyle=("-", "--", ":")[i % 3], label=f"{label or path}, seed {seed}")
-    _finish(fig, ax, "env frames in all (thousands; the first 10k random)", "HandReach-v3, GCSL", png)
+            ax.plot([r["memory_rows"] / 1000 for r in pts], [r["success"] for r in pts], color=colours(j % 10),
+                    alpha=0.8, linestyle=("-", "--", ":")[i % 3], label=(label or path) if i == 0 else None)
+    _finish(fig, ax, "env frames in all (thousands; the first 10k random)",
+            "HandReach-v3, GCSL (one line a seed: -, --, :)", png)
 
 
 def _finish(fig, ax, xlabel: str, title: str, png: str) -> None:
