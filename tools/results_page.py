@@ -860,6 +860,11 @@ def _proposer_pilot(root: Path, control_arm: Runs, proposer_arm: Runs,
     return head, t, summary
 
 
+def _ms_a_goal(summary: dict) -> float:
+    """The proposer's time a proposed goal, in ms, from a run's ``summary.json`` proposer counters."""
+    return 1000 * summary["seconds"] / max(summary["proposed"], 1)
+
+
 def pnp_proposer_pilot(root: Path) -> str:
     """Issue 43's pilot: FetchPickAndPlace from nothing, one seed an arm, the same recipe with and without the proposer
     (archives ``pnp43-{control,propose}-s0.json``, the runs' summaries beside them)."""
@@ -875,8 +880,7 @@ def pnp_proposer_60k(root: Path) -> str:
     """Issue 43 on FetchPickAndPlace to 60k frames: seed 0, the recipe with and without the proposer, side by side
     (archives ``pnp43-60k-{control,propose}-s0.json``, the runs' summaries beside them)."""
     head, t, summary = _proposer_pilot(root, PNP43_60K_CONTROL, PNP43_60K_PROPOSER)
-    per_goal = 1000 * summary["seconds"] / max(summary["proposed"], 1)
-    return f"{head} That is {per_goal:.0f} ms a proposed goal.\n\n{t}"
+    return f"{head} That is {_ms_a_goal(summary):.0f} ms a proposed goal.\n\n{t}"
 
 
 PNP43_150K_CONTROL = Runs("SAC+HER from scratch", "pnp43-150k-control-s{}", seeds=(0,))
@@ -887,8 +891,7 @@ def pnp_proposer_150k(root: Path) -> str:
     """Issue 43 on FetchPickAndPlace to 150k frames (the goal's budget): seed 0, the 60k runs resumed
     (archives ``pnp43-150k-{control,propose}-s0.json``, the runs' summaries beside them)."""
     head, t, summary = _proposer_pilot(root, PNP43_150K_CONTROL, PNP43_150K_PROPOSER, every=15000)
-    per_goal = 1000 * summary["seconds"] / max(summary["proposed"], 1)
-    return (f"{head} That is {per_goal:.0f} ms a proposed goal (the proposer's counters start again in a resumed "
+    return (f"{head} That is {_ms_a_goal(summary):.0f} ms a proposed goal (the proposer's counters start again in a resumed "
             f"process: these are the last segment's, 75k to 150k frames). The table shows the evaluations every 15k "
             f"frames (of one every 2.5k) and the best of them all.\n\n{t}")
 
@@ -897,8 +900,7 @@ def hand_proposer_pilot(root: Path) -> str:
     """Issue 43's second pilot: HandReach from nothing, one seed an arm, 30k frames, with and without the proposer
     (archives ``hand43-{control,propose}-s0.json``, the runs' summaries beside them)."""
     head, t, summary = _proposer_pilot(root, HAND43_CONTROL, HAND43_PROPOSER)
-    per_goal = 1000 * summary["seconds"] / max(summary["proposed"], 1)
-    return (f"{head} That is {per_goal:.0f} ms a proposed goal. One seed, a pilot: no conclusion either way.\n\n{t}")
+    return (f"{head} That is {_ms_a_goal(summary):.0f} ms a proposed goal. One seed, a pilot: no conclusion either way.\n\n{t}")
 
 
 #: the frames in all (10k random first) at which the GCSL tables show the evaluated success
