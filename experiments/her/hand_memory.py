@@ -55,6 +55,7 @@ from torchrl_robotmem import GoalProposer, ZarrStorage, recall
 
 ENV = "HandReach-v3"
 EVAL_SEED = 10_000  # evaluation goals: reset(seed=EVAL_SEED + i)
+HELDOUT_SEED = 5_000_000  # held-out goals, for choosing a setting: reset(seed=HELDOUT_SEED + i), never the evaluation's
 
 
 def read_rows(paths: list[str]) -> dict[str, torch.Tensor]:
@@ -170,7 +171,7 @@ def episode_seed(seed: int, r: int, e: int) -> int:
 
 def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, seed: int, log,
          episodes: int = 100, memory_out: str | None = None, propose_rate: float = 0.0, stop_at: float | None = None,
-         candidates: str = "uniform", reached_in: int = 0) -> list[dict]:
+         candidates: str = "uniform", reached_in: int = 0, eval_seed: int = EVAL_SEED) -> list[dict]:
     """Clone, then ``rounds`` of: 100 noisy episodes with the clone, added to the data, cloned further.
 
     Each clone is evaluated on ``episodes`` deterministic episodes (the goals of :func:`eval_goals`).
@@ -184,6 +185,8 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
             of lowest density among 100 candidates, MEGA) instead of the env's own; ``0`` (the control):
             every episode pursues the env's goal. Evaluation always uses the env's goals.
         stop_at: stop after the first evaluation at or above this success (a second run: frames it needed).
+        eval_seed: the evaluation goals are ``reset(seed=eval_seed + i)``: :data:`EVAL_SEED` (the evaluation),
+            or :data:`HELDOUT_SEED` where a setting is being chosen (recorded as ``eval_seed`` then).
         candidates: the proposer's candidates: ``"uniform"`` (among every stored row) or ``"near_goal"``
             (the 100 stored achieved goals nearest the goal the env drew for the episode).
         reached_in: the proposer's ``reached_in``: only goals the memory reached in this many episodes compete.
@@ -207,12 +210,13 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
     results, new_frames, cpu = [], 0, time.process_time()
     for r in range(rounds + 1):
         loss = fit(model, opt, data, horizon, steps, gen)
-        outcomes = [rollout(env, model, EVAL_SEED + e, 0.0, rng)[1] for e in range(episodes)]
+        outcomes = [rollout(env, model, eval_seed + e, 0.0, rng)[1] for e in range(episodes)]
         success = np.mean(outcomes)
         results.append({"what": "gcsl" if rounds else "clone", "memories": paths, "horizon": horizon, "seed": seed,
                         "round": r, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
                         "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
                         "propose_rate": propose_rate, "outcomes": "".join("1" if o else "0" for o in outcomes),
+                        **({"eval_seed": eval_seed} if eval_seed != EVAL_SEED else {}),
                         **({"proposed": proposer.proposed, "propose_s": round(proposer.seconds, 2),
                             "candidates": candidates, **({"reached_in": reached_in} if reached_in else {})}
                            if proposer else {})})
@@ -310,6 +314,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rounds", type=int, default=5, help="gcsl: collect-and-clone rounds of 100 episodes")
     parser.add_argument("--sigma", type=float, default=0.1, help="gcsl: action noise while collecting")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--eval-seed", type=int, default=EVAL_SEED,
+                        help=f"evaluation goals reset(seed=EVAL_SEED + i); {HELDOUT_SEED}: held-out goals, to choose a "
+                             f"setting on (default {EVAL_SEED}: the evaluation's)")
     parser.add_argument("--episodes", type=int, default=100,
                         help="evaluation episodes of a clone (cover: twice as many goals)")
     parser.add_argument("--memory-out", default=None,
@@ -348,7 +355,7 @@ def main(argv: list[str] | None = None) -> None:
     for horizon in args.horizon:
         gcsl(args.memories, horizon, args.steps, args.rounds if args.what == "gcsl" else 0, args.sigma, args.seed, log,
              episodes=args.episodes, memory_out=args.memory_out, propose_rate=args.propose_rate, stop_at=args.stop_at,
-             candidates=args.candidates, reached_in=args.reached_in)
+             candidates=args.candidates, reached_in=args.reached_in, eval_seed=args.eval_seed)
 
 
 if __name__ == "__main__":
