@@ -37,6 +37,7 @@ import itertools
 import json
 import math
 import re
+import statistics
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -973,6 +974,44 @@ def hand_gcsl_proposer_reached(root: Path) -> str:
                                      "at least 2 stored episodes", cost=True)
 
 
+#: the GCSL arms of issue 43 on HandReach, by the name their memories carry (bench_results/i43/gcsl/NAME-sS.zarr)
+HAND43_GCSL_ARMS = {"control": HAND43_GCSL_CONTROL, "propose": HAND43_GCSL_PROPOSE, "propose25": HAND43_GCSL_QUARTER,
+                    "near": HAND43_GCSL_NEAR, "reached2": HAND43_GCSL_REACHED}
+
+
+def hand_gcsl_fit_cover(root: Path) -> str:
+    """Issue 43, goal 4 on HandReach: is GCSL's plateau the fit or the data? Fresh clones of the control's seed-0
+    memory with more Adam steps (held-out and evaluation goals), and each run's memory's cover of the evaluation's
+    pinch goals against the success the run reached (archives ``hand43-gcsl-fit-s0.jsonl``, ``hand43-gcsl-cover.jsonl``)."""
+    with open(root / RUNS / "hand43-gcsl-fit-s0.jsonl") as f:
+        clones = [json.loads(line) for line in f if line.strip()]
+    rows = []
+    for steps in sorted({d["steps"] for d in clones}):
+        at = {d.get("eval_seed", "eval"): d for d in clones if d["steps"] == steps}
+        held, ev = at[min(k for k in at if k != "eval")], at["eval"]
+        rows.append([f"{steps:,}", f2(held["success"]), f2(ev["success"]), f"{ev['loss']:.4f}", cpu(ev["cpu_s"])])
+    fit = table(["Adam steps (one fresh clone of the 150k rows)", "success, 100 held-out goals",
+                 "success, the 100 evaluation goals", "last batch's loss", "CPU-s"], rows)
+    with open(root / RUNS / "hand43-gcsl-cover.jsonl") as f:
+        cover = [json.loads(line) for line in f if line.strip()]
+    rows, xs, ys = [], [], []
+    for name, arm in HAND43_GCSL_ARMS.items():
+        final = dict(zip(arm.seeds, arm.read(root).values))
+        for seed in arm.seeds:
+            c = next(d for d in cover if d["memories"][0].endswith(f"/{name}-s{seed}.zarr"))
+            xs.append(c["within_0.01"])
+            ys.append(final[seed])
+            rows.append([f"{arm.label}, seed {seed}", pct(c["within_0.01"]), pct(c["within_0.02"]),
+                         f"{c['nearest_median']:.4f}", f2(final[seed])])
+    r = statistics.correlation(xs, ys)
+    head = (f"**More fitting stops paying at about 20k Adam steps; the runs' success goes with what their memories "
+            f"cover.** Across the {len(xs)} runs, the share of the evaluation's pinch goals with a stored achieved "
+            f"goal within the success distance (0.01) and the run's success at 150k frames correlate at r = {r:.2f}.")
+    return (head + "\n\n" + fit + "\n\n" +
+            table(["memory after 150k frames (run, seed)", "pinch goals within 0.01", "within 0.02",
+                   "median distance to the nearest", "the run's success at 150k"], rows))
+
+
 HAND43_GCSL_LONG = HandArm("GCSL, seed 0, to 400k frames", "hand43-gcsl-long-control-s0.jsonl", "gcsl")
 #: the frames in all at which the long run's table shows the evaluated success
 GCSL_LONG_FRAMES = [10000, 50000, 100000, 150000, 200000, 250000, 300000, 350000, 400000]
@@ -1026,6 +1065,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "pnp_proposer_60k": pnp_proposer_60k,
     "pnp_proposer_150k": pnp_proposer_150k,
     "hand_gcsl_long": hand_gcsl_long,
+    "hand_gcsl_fit_cover": hand_gcsl_fit_cover,
     "hand_proposer_pilot": hand_proposer_pilot,
     "reach_second": reach_second,
     "push_clone": push_clone,

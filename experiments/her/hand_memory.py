@@ -213,7 +213,7 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
         outcomes = [rollout(env, model, eval_seed + e, 0.0, rng)[1] for e in range(episodes)]
         success = np.mean(outcomes)
         results.append({"what": "gcsl" if rounds else "clone", "memories": paths, "horizon": horizon, "seed": seed,
-                        "round": r, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
+                        "round": r, "steps": steps, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
                         "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
                         "propose_rate": propose_rate, "outcomes": "".join("1" if o else "0" for o in outcomes),
                         **({"eval_seed": eval_seed} if eval_seed != EVAL_SEED else {}),
