@@ -212,14 +212,17 @@ def gcsl(paths: list[str], horizon: int, steps: int, rounds: int, sigma: float, 
         loss = fit(model, opt, data, horizon, steps, gen)
         outcomes = [rollout(env, model, eval_seed + e, 0.0, rng)[1] for e in range(episodes)]
         success = np.mean(outcomes)
-        results.append({"what": "gcsl" if rounds else "clone", "memories": paths, "horizon": horizon, "seed": seed,
-                        "round": r, "steps": steps, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
-                        "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
-                        "propose_rate": propose_rate, "outcomes": "".join("1" if o else "0" for o in outcomes),
-                        **({"eval_seed": eval_seed} if eval_seed != EVAL_SEED else {}),
-                        **({"proposed": proposer.proposed, "propose_s": round(proposer.seconds, 2),
-                            "candidates": candidates, **({"reached_in": reached_in} if reached_in else {})}
-                           if proposer else {})})
+        line = {"what": "gcsl" if rounds else "clone", "memories": paths, "horizon": horizon, "seed": seed,
+                "round": r, "steps": steps, "new_frames": new_frames, "memory_rows": int(data["obs"].shape[0]),
+                "success": float(success), "loss": loss, "cpu_s": round(time.process_time() - cpu, 1),
+                "propose_rate": propose_rate, "outcomes": "".join("1" if o else "0" for o in outcomes)}
+        if eval_seed != EVAL_SEED:  # held-out goals
+            line["eval_seed"] = eval_seed
+        if proposer is not None:
+            line.update(proposed=proposer.proposed, propose_s=round(proposer.seconds, 2), candidates=candidates)
+            if reached_in:
+                line["reached_in"] = reached_in
+        results.append(line)
         log(results[-1])
         if r == rounds or (stop_at is not None and success >= stop_at):
             break
