@@ -635,3 +635,91 @@ def test_a_strided_slice_with_its_stop_left_out_is_committed_as_torchrl_counts_i
         assert len(reader) == len(ref)
         assert reader.record()["last_cursor"] == ref._last_cursor_index == 8
         assert reader[[0, 2, 4]]["a"].tolist() == [10.0, 11.0, 12.0]
+
+
+def test_negative_cursors_reach_the_chunks(tmp_path):
+    """``set(-1, row)``, a tensor of indices with a negative one and a negative range write the rows they name
+    (counted from the end, as TorchRL's storages index) into the Zarr chunks, not only into the row file: the
+    rows read back with the row file deleted, and through Zarr itself, are the rows written (they used to mark a
+    chunk ``-1`` dirty, so the chunks kept the old rows; through the commit worker, the empty snapshot of that
+    chunk failed the commit)."""
+    import shutil
+
+    from torchrl_robotmem.storage.rowfile import ROWS_DIR
+
+    path = str(tmp_path / "m.zarr")
+    with ZarrStorage(path, 100, chunk_rows=10, goal_conditioned=False, env="FetchReach-v4") as st:
+        st.set(slice(0, 100), TensorDict({"a": torch.arange(100.0)}, [100]))
+    with ZarrStorage(path, goal_conditioned=False) as st:
+        st.set(-1, TensorDict({"a": torch.tensor(777.0)}, []))
+        st.set(torch.tensor([-12, 5]), TensorDict({"a": torch.tensor([555.0, 5.5])}, [2]))
+        st.set(range(-30, -28), TensorDict({"a": torch.tensor([70.5, 71.5])}, [2]))
+        st.flush()
+        assert zarr.open_group(path, mode="r")["a"][[88, 99, 5, 70, 71]].tolist() == [555.0, 777.0, 5.5, 70.5, 71.5]
+    shutil.rmtree(tmp_path / "m.zarr" / ROWS_DIR)  # the rows come from the chunks alone
+    with ZarrStorage(path, read_only=True) as reader:
+        assert reader[[88, 99, 5, 70, 71, 98]]["a"].tolist() == [555.0, 777.0, 5.5, 70.5, 71.5, 98.0]
+
+
+def _random_cursor(rng, n: int):
+    """A cursor of one of the kinds a TorchRL storage's ``set`` takes, rows of a storage of ``n``."""
+    kind = rng.choice(["int", "negative int", "slice", "open slice of one", "strided slice", "open strided slice",
+                       "tensor", "negative tensor", "list", "range"])
+    a = rng.randrange(n)
+    b = rng.randrange(a + 1, n + 1)
+    if kind == "int":
+        return a
+    if kind == "negative int":
+        return -rng.randrange(1, n + 1)
+    if kind == "slice":
+        return slice(a, b)
+    if kind == "open slice of one":
+        return slice(n - 1, None)
+    if kind == "strided slice":
+        return slice(a, b, rng.randrange(2, 4))
+    if kind == "open strided slice":
+        return slice(a, None, rng.randrange(2, 4))
+    picked = rng.sample(range(n), rng.randrange(1, n // 2))
+    if kind == "tensor":
+        return torch.tensor(picked)
+    if kind == "negative tensor":
+        return torch.tensor([i - n for i in picked])
+    return picked if kind == "list" else range(a, b)
+
+
+def test_any_cursor_is_written_committed_and_reopened_as_lazy_tensor_storage_counts_it(tmp_path):
+    """A differential test: 10 runs of 40 ``set`` calls with random cursors of every kind TorchRL's storages take,
+    on ``ZarrStorage`` and ``LazyTensorStorage`` side by side. After each call both have the same length, last
+    cursor and written rows (those below the length); after ``close()``, the reopened store (row file deleted: the chunks alone) has them
+    too. Seeded by ``ROBOTMEM_TEST_SEED`` (the failure names the seed, run and call)."""
+    import random
+    import shutil
+
+    from conftest import suite_seed
+
+    from torchrl_robotmem.storage.rowfile import ROWS_DIR
+
+    n = 12
+    for run in range(10):
+        seed = suite_seed() * 1000 + run
+        rng = random.Random(seed)
+        path = str(tmp_path / f"m{run}.zarr")
+        st, ref = ZarrStorage(path, n, chunk_rows=4, goal_conditioned=False, env="FetchReach-v4"), LazyTensorStorage(n)
+        written = torch.zeros(n, dtype=torch.bool)
+        for call in range(40):
+            cursor = _random_cursor(rng, n)
+            rows = torch.arange(n)[cursor if not isinstance(cursor, (list, range)) else list(cursor)].reshape(-1)
+            value = torch.full((len(rows),), float(call)) if not isinstance(cursor, int) else torch.tensor(float(call))
+            data = TensorDict({"a": value}, value.shape)
+            ref.set(cursor, data)
+            st.set(cursor, data)
+            written[rows] = True
+            where = f"seed {seed} (ROBOTMEM_TEST_SEED={suite_seed()}, run {run}), call {call}, cursor {cursor!r}"
+            assert (len(st), st._last_cursor_index) == (len(ref), ref._last_cursor_index), where
+            seen = written[: len(ref)].nonzero().reshape(-1)  # rows past the length are not read (an IndexError)
+            assert torch.equal(st[seen]["a"], ref[seen]["a"]), where
+        st.close()
+        shutil.rmtree(tmp_path / f"m{run}.zarr" / ROWS_DIR)
+        with ZarrStorage(path, read_only=True) as reader:
+            assert (len(reader), reader._last_cursor_index) == (len(ref), ref._last_cursor_index), f"seed {seed}"
+            assert torch.equal(reader[seen]["a"], ref[seen]["a"]), f"seed {seed}, reopened from the chunks"

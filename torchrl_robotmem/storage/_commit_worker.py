@@ -124,7 +124,9 @@ def write_frame(sock: socket.socket, header: dict, payloads: list | tuple = (), 
     else:
         sock.sendall(head)
     for p in payloads:
-        sock.sendall(memoryview(p).cast("B"))
+        view = memoryview(p)
+        if view.nbytes:  # an empty array has nothing to send (and cannot be cast to bytes)
+            sock.sendall(view.cast("B"))
 
 
 # -- the child ---------------------------------------------------------------------------

@@ -140,18 +140,28 @@ def is_int_cursor(cursor) -> bool:
 
 
 def cursor_rows(cursor, max_size: int) -> torch.Tensor:
-    """The first-dimension rows a cursor touches (a tuple cursor indexes several dims)."""
+    """The first-dimension rows a cursor touches (a tuple cursor indexes several dims), as rows of ``max_size``.
+
+    A negative index counts from the end, as the write into the rows does (``-1``: row ``max_size - 1``): the
+    rows marked dirty and committed are the rows written.
+
+    Example:
+        >>> cursor_rows(-1, 10), cursor_rows(torch.tensor([-2, 3]), 10), cursor_rows(slice(-3, None), 10)
+        (tensor([9]), tensor([8, 3]), tensor([7, 8, 9]))
+    """
     if isinstance(cursor, tuple):
         first = cursor[0] if cursor else slice(None)
         rows = cursor_rows(first, max_size)
         return rows.unique() if rows.numel() > 1 else rows
-    if is_int_cursor(cursor):
-        return torch.tensor([int(cursor)], dtype=torch.long)
     if isinstance(cursor, slice):
         return torch.arange(*cursor.indices(max_size), dtype=torch.long)
-    if isinstance(cursor, range):
-        return torch.tensor(list(cursor), dtype=torch.long)
-    return torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()
+    if is_int_cursor(cursor):
+        rows = torch.tensor([int(cursor)], dtype=torch.long)
+    elif isinstance(cursor, range):
+        rows = torch.tensor(list(cursor), dtype=torch.long)
+    else:
+        rows = torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()
+    return torch.where(rows < 0, rows + max_size, rows)
 
 
 def write_span(cursor, data, rows: torch.Tensor) -> tuple[Any, torch.Tensor | slice]:

@@ -328,9 +328,9 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             if self._store.unbounded:
                 self._fit(cursor)
             rows = cursor_rows(cursor, self._mirror.max_dim0)
-            cursor, dirty = write_span(cursor, data, rows)
+            span, dirty = write_span(cursor, data, rows)
             with self._engine.cv:
-                self._write_ram(cursor, data, set_cursor)
+                self._write_ram(cursor, span, data, set_cursor)
                 if set_cursor:
                     self._store.advance(n, int(rows[-1]) + 1)
                 else:
@@ -372,12 +372,13 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             # touched are unknown here, so every stored row is committed again.
             self._store.mark_rows_dirty(self._len_along_dim0)
 
-    def _write_ram(self, cursor, data: TensorDictBase, set_cursor: bool) -> None:
-        """TensorStorage.set on the RAM mirror (``data`` is the prepared TensorDict)."""
+    def _write_ram(self, cursor, span, data: TensorDictBase, set_cursor: bool) -> None:
+        """TensorStorage.set on the RAM mirror (``data`` is the prepared TensorDict): TorchRL's own bookkeeping
+        of the caller's ``cursor``, the rows written at ``span`` (the same rows: :func:`.planner.write_span`)."""
         if set_cursor:
             self._set_last_cursor(cursor)
             self._get_new_len(data, cursor)
-        self._mirror.write(cursor, data)
+        self._mirror.write(span, data)
         self._bump_mutation_revision()
 
     def check_schema(self, data: TensorDictBase) -> None:
