@@ -723,3 +723,40 @@ def test_any_cursor_is_written_committed_and_reopened_as_lazy_tensor_storage_cou
         with ZarrStorage(path, read_only=True) as reader:
             assert (len(reader), reader._last_cursor_index) == (len(ref), ref._last_cursor_index), f"seed {seed}"
             assert torch.equal(reader[seen]["a"], ref[seen]["a"]), f"seed {seed}, reopened from the chunks"
+
+
+def test_any_first_dim_cursor_of_an_ndim_2_storage_matches_lazy_tensor_storage(tmp_path):
+    """The differential test on ``ndim=2`` storages (8 trajectories of 3 steps, chunks of 3 trajectories): whole
+    trajectories written at random first-dimension cursors of every kind; after each call the same length, last
+    cursor and contents as ``LazyTensorStorage(24, ndim=2)``, and after ``close()`` the same from the chunks alone."""
+    import random
+    import shutil
+
+    from conftest import suite_seed
+
+    from torchrl_robotmem.storage.rowfile import ROWS_DIR
+
+    n, steps = 8, 3
+    for run in range(5):
+        seed = suite_seed() * 1000 + run
+        rng = random.Random(seed)
+        path = str(tmp_path / f"m{run}.zarr")
+        st = ZarrStorage(path, n * steps, ndim=2, chunk_rows=3, goal_conditioned=False, env="FetchReach-v4")
+        ref = LazyTensorStorage(n * steps, ndim=2)
+        start = TensorDict({"a": torch.zeros(n, steps)}, [n, steps])
+        st.set(slice(0, n), start)
+        ref.set(slice(0, n), start)
+        for call in range(30):
+            cursor = _random_cursor(rng, n)
+            shape = (steps,) if isinstance(cursor, int) else (
+                len(torch.arange(n)[cursor if not isinstance(cursor, (list, range)) else list(cursor)].reshape(-1)), steps)
+            data = TensorDict({"a": torch.full(shape, float(call + 1))}, shape)
+            ref.set(cursor, data)
+            st.set(cursor, data)
+            where = f"seed {seed} (ROBOTMEM_TEST_SEED={suite_seed()}, run {run}), call {call}, cursor {cursor!r}"
+            assert (len(st), st._last_cursor_index) == (len(ref), ref._last_cursor_index), where
+            assert torch.equal(st[:]["a"], ref[:]["a"]), where
+        st.close()
+        shutil.rmtree(tmp_path / f"m{run}.zarr" / ROWS_DIR)
+        with ZarrStorage(path, read_only=True) as reader:
+            assert len(reader) == len(ref) and torch.equal(reader[:]["a"], ref[:]["a"]), f"seed {seed}, from the chunks"
