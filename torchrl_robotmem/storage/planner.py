@@ -32,6 +32,7 @@ from tensordict import LazyStackedTensorDict, TensorDict, TensorDictBase, is_ten
 from tensordict.base import _is_leaf_nontensor
 
 from . import _backend
+from .format import UNBOUNDED_SIZE
 from .schema import DataKind, check_against, split_constants
 from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag, env_names_of
 
@@ -241,6 +242,7 @@ def plan_write(view: StoreView, cursor, data, *, set_cursor: bool, as_kind: Data
     """
     plan = _plan_append(view, cursor, data) if set_cursor and as_kind is None and not keep_tags else None
     if plan is not None:
+        _check_cursor_count(view, cursor, plan.data)
         return plan
     single = is_int_cursor(cursor)
     kind, td, warning = _normalise(view, data, single, as_kind)
@@ -256,6 +258,8 @@ def plan_write(view: StoreView, cursor, data, *, set_cursor: bool, as_kind: Data
         )
     if td.shape[0] == 0:
         raise ValueError("Cannot write an empty TensorDict.")
+    if not multi and not single:
+        _check_cursor_count(view, cursor, td)
     # the dims that count in len; tags are per element of these
     lead = td.batch_size if multi else td.batch_size[: view.ndim]
     for key in DROPPED_KEYS:
@@ -288,6 +292,46 @@ def plan_write(view: StoreView, cursor, data, *, set_cursor: bool, as_kind: Data
         else:
             plan.set_tags(episode, run)
     return plan
+
+
+def _check_cursor_count(view: StoreView, cursor, td: TensorDictBase) -> None:
+    """Raises unless ``cursor`` names as many first-dimension rows as ``td`` holds, as ``LazyTensorStorage`` does.
+
+    A row is never repeated to fill the rows a cursor names (``set(slice(5, None), one_row)`` is refused, as
+    TorchRL's storages refuse it), and a write of more rows than its cursor names is refused before anything
+    changes. An open slice counts to the end of the memory: of a memory without a declared capacity, to
+    TorchRL's ``max_size`` for it (so an open stop never matches).
+    """
+    mirror = view.mirror
+    if isinstance(cursor, slice):
+        if mirror.unbounded:
+            size = UNBOUNDED_SIZE
+        elif view.initialized:
+            size = mirror.max_dim0
+        else:  # the first write: the rows along the first dimension, as TorchRL's storages count them
+            size = -(-mirror.max_size // max(1, int(np.prod(td.batch_size[1:view.ndim], dtype=np.int64))))
+        named = len(range(*cursor.indices(size)))
+    elif isinstance(cursor, torch.Tensor):
+        named = cursor.numel()
+    else:
+        try:
+            named = len(cursor)
+        except TypeError:
+            return  # another index kind: the write itself checks it
+    if named != td.batch_size[0]:
+        raise ValueError(
+            f"The cursor {_show_cursor(cursor)} names {named} rows along the first dimension, and the data holds "
+            f"{td.batch_size[0]} (batch_size {list(td.batch_size)}): a cursor names one row per row written, as in "
+            f"LazyTensorStorage.set. Nothing was written."
+        )
+
+
+def _show_cursor(cursor) -> str:
+    if isinstance(cursor, torch.Tensor) and cursor.numel() > 8:
+        return f"tensor of {cursor.numel()} indices"
+    if isinstance(cursor, (list, tuple)) and len(cursor) > 8:
+        return f"list of {len(cursor)} indices"
+    return repr(cursor)
 
 
 def _plan_append(view: StoreView, cursor, data) -> WritePlan | None:
