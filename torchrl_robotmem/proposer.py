@@ -291,6 +291,8 @@ class GoalProposer(Transform):
         try:  # no more episodes than rows: a reached_in beyond them answers the same
             _, _, found = self.index.search(goals, min(self.reached_in, len(self._source)), filter=reach)
         except KeyError as e:
+            if "'episode'" not in str(e):  # another missing column (the goals'): its own error says which
+                raise
             raise ValueError(f"reached_in={self.reached_in} counts the episodes that reached a goal, and the memory "
                              f"has no episode ids to count ({e}): propose from a ZarrStorage (it tags every row "
                              f"with its episode), or leave reached_in=0.") from e
