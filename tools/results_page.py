@@ -889,12 +889,34 @@ PNP43_150K_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-150k-pr
 
 
 def pnp_proposer_150k(root: Path) -> str:
-    """Issue 43 on FetchPickAndPlace to 150k frames (the goal's budget): seed 0, the 60k runs resumed
-    (archives ``pnp43-150k-{control,propose}-s0.json``, the runs' summaries beside them)."""
-    head, t, summary = _proposer_pilot(root, PNP43_150K_CONTROL, PNP43_150K_PROPOSER, every=15000)
-    return (f"{head} That is {_ms_a_goal(summary):.0f} ms a proposed goal (the proposer's counters start again in a resumed "
-            f"process: these are the last segment's, 75k to 150k frames). The table shows the evaluations every 15k "
-            f"frames (of one every 2.5k) and the best of them all.\n\n{t}")
+    """Issue 43 on FetchPickAndPlace to 150k frames (the goal's budget): the recipe with and without the proposer,
+    a run an arm for each seed archived (``pnp43-150k-{control,propose}-sS.json``, the runs' summaries beside
+    them; seed 0's runs are its 60k runs resumed). One seed: the pilot's figures; more: run-level figures."""
+    if len(PNP43_150K_CONTROL.seeds) == 1:
+        head, t, summary = _proposer_pilot(root, PNP43_150K_CONTROL, PNP43_150K_PROPOSER, every=15000)
+        return (f"{head} That is {_ms_a_goal(summary):.0f} ms a proposed goal (the proposer's counters start again in a "
+                f"resumed process: these are the last segment's, 75k to 150k frames). The table shows the evaluations "
+                f"every 15k frames (of one every 2.5k) and the best of them all.\n\n{t}")
+    control, propose = PNP43_150K_CONTROL.read(root), PNP43_150K_PROPOSER.read(root)
+    c = compare(propose, control)
+    summaries = [json.loads((root / RUNS / f"{PNP43_150K_PROPOSER.pattern.format(seed)}-summary.json").read_text())
+                 ["proposer"] for seed in PNP43_150K_PROPOSER.seeds]
+    head = (f"**At {_frames_of(propose)} frames: {slash(propose.values)} with the proposer, {slash(control.values)} "
+            f"without** (seeds {slash(propose.seeds, str)}). Run-level: {run_level(c)}. Episode-level: "
+            f"{episode_level(c)}. The proposer's time a proposed goal: "
+            f"{slash([_ms_a_goal(x) for x in summaries], lambda x: f'{x:.0f}')} ms (each run's last process).")
+    every = 15000
+    rows = []
+    for arm in (PNP43_150K_CONTROL, PNP43_150K_PROPOSER):
+        data = arm.read(root)
+        for seed, cpu_s in zip(arm.seeds, data.cpu):
+            curve = arm.curve(root, seed)
+            shown = [f for f in sorted(curve) if f % every == 0]
+            rows.append([f"{arm.label}, seed {seed}", *[f2(curve[f]) for f in shown], f2(max(curve.values())),
+                         cpu(cpu_s)])
+    t = table(["arm, seed", *[kf(f) for f in shown], "best", "CPU-s"], rows)
+    return (f"{head} The table shows the evaluations every 15k frames (of one every 2.5k) and the best of them "
+            f"all.\n\n{t}")
 
 
 def hand_proposer_pilot(root: Path) -> str:
