@@ -73,6 +73,9 @@ class MemoryStore:
         self.write_count = 0  # the writer's position: its count and its next row
         self.appended = 0  # rows this handle appended since its open (None: unknown, a reset or a loaded state)
         self.cursor = 0
+        # the attached TorchRL writer's own (cursor, write_count), as last seen after a write, an empty or a load:
+        # what a reopen hands the writer back (None: no writer seen; the store's own cursor and count are used)
+        self.writer_at: tuple[int, int] | None = None
         self.unbounded = False  # a memory without a declared capacity (it grows; no ring)
         self.restored_writers: weakref.WeakSet | None = None  # set once the store is open
         self.context_checked = False  # a success column and an env name: checked at this handle's first write
@@ -236,6 +239,7 @@ class MemoryStore:
         self.tags.sync(attrs)
         self.write_count = int(attrs.get("write_count", 0))
         self.cursor = int(attrs.get("cursor", 0))
+        self.writer_at = _writer_field(attrs.get("writer"), None if attrs.get(UNBOUNDED) else int(attrs["max_size"]))
         self.unbounded = self.mirror.unbounded = bool(attrs.get(UNBOUNDED))
         self.engine.set_committed(attrs)
         self.recorded_goal_conditioned = attrs.get(GOAL_CONDITIONED) is not False  # older stores lack it
@@ -327,22 +331,44 @@ class MemoryStore:
             self.appended += n
         self.cursor = next_row if self.unbounded else next_row % self.mirror.max_dim0
 
+    def follow_writers(self, storage: Any, *, record: bool = False) -> None:
+        """Takes the position of the writer attached to ``storage`` (TorchRL's count) as the one to record.
+
+        Called after each write (under the engine's lock: the commit that takes the rows takes the
+        position with them); ``record``: commit the record even if no row changed (an empty, a flush).
+        """
+        if self.read_only or self.handle.closed:
+            return
+        at = writer_sync.writer_position(storage)
+        if at is None or at == self.writer_at:
+            return
+        self.writer_at = at
+        if record:
+            with self.engine.cv:
+                self.engine.mark_meta_dirty()
+
     def reset(self) -> None:
         """An emptied store: the writer starts over (as TorchRL's writer restarts its count)."""
         self.cursor = 0
         self.write_count = 0
+        self.writer_at = None
         self.appended = None
         self.tags.tagger.reset()
         self.engine.mark_meta_dirty()
 
     def meta_snapshot(self, length: int, last: int | None) -> dict:
         """The record a commit writes, for ``length`` rows and the last written row ``last``."""
+        writer = {} if self.writer_at is None else {"writer": list(self.writer_at)}
         return {"len": length, "cursor": self.cursor, "last_cursor": -1 if last is None else int(last),
-                "write_count": self.write_count, "session": self.session, **self.tags.record()}
+                "write_count": self.write_count, "session": self.session, **writer, **self.tags.record()}
 
     def restore_writers(self, storage: Any, force: bool = False) -> None:
         """Puts the writers of the buffers on ``storage`` at this store's cursor and write count."""
-        writer_sync.restore_writers(storage, self.cursor, self.write_count, self.restored_writers, force=force)
+        at = self.writer_at
+        if at is None or at[0] > self.mirror.filled():  # a position never points past the rows stored
+            at = (self.cursor, self.write_count)
+        cursor, count = at
+        writer_sync.restore_writers(storage, cursor, count, self.restored_writers, force=force)
 
     def rollback_writers(self, storage: Any, cursor: Any, size: int) -> None:
         """Undoes the cursor move the writers of ``storage`` made before a ``set`` at ``cursor`` that failed."""
@@ -520,3 +546,12 @@ class MemoryStore:
             self.tags.note_stored(rows.get("episode").max(), rows.get("run").max())
         with self.engine.cv:
             self.engine.mark_meta_dirty()
+
+
+def _writer_field(value: Any, max_size: int | None) -> tuple[int, int] | None:
+    """The record's ``writer`` entry, ``[cursor, write_count]``; anything else (an older store has none, a forged
+    one) is ``None``: the store's own cursor and count are handed to the writer instead."""
+    if (isinstance(value, list) and len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+            and 0 <= value[0] and (max_size is None or value[0] < max_size) and value[1] >= 0):
+        return value[0], value[1]
+    return None

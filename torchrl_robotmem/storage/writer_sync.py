@@ -11,7 +11,14 @@ before a ``set`` that is refused. TorchRL has no storage -> writer channel, so:
   ``writer.state_dict()``;
 * the moment to do it is the buffer's ``checkpointer`` assignment, which
   ``ReplayBuffer._init`` makes right after ``writer.register_storage`` (see
-  ``ZarrStorage.checkpointer``): before that call the writer does not exist.
+  ``ZarrStorage.checkpointer``): before that call the writer does not exist;
+* what the store records is the writer's own position (:func:`writer_position`,
+  read after each write, an empty and a load): TorchRL's writers move it in ways a
+  storage does not see (``write_at`` counts without ``set_cursor``, a consuming
+  buffer moves the cursor itself, ``empty(empty_write_count=False)`` keeps the
+  count, ``dim_extend`` counts items, not elements);
+* ``TensorDictMaxValueWriter`` has no ``state_dict``: its heap of (rank, row) is
+  rebuilt from the stored rows' rank key, which is what it held.
 
 ``docs/storage.md`` lists these private names.
 """
@@ -21,7 +28,7 @@ import weakref
 from collections.abc import Iterator
 from typing import Any
 
-__all__ = ["attached_writers", "restore_writers", "rollback_writers"]
+__all__ = ["attached_writers", "restore_writers", "rollback_writers", "writer_position"]
 
 
 def attached_writers(storage: Any) -> Iterator[Any]:
@@ -30,6 +37,23 @@ def attached_writers(storage: Any) -> Iterator[Any]:
         writer = getattr(entity, "_writer", None)
         if writer is not None and getattr(writer, "_storage", None) is storage:
             yield writer
+
+
+def writer_position(storage: Any) -> tuple[int, int] | None:
+    """``(cursor, write_count)`` of the first attached writer that has them (``None``: no such writer).
+
+    Read from the writer's attributes, not its ``state_dict`` (which clones a tracking writer's
+    generation stamps): this runs after every write.
+    """
+    for writer in attached_writers(storage):
+        cursor, count = getattr(writer, "_cursor", None), getattr(writer, "_write_count", None)
+        if cursor is not None and count is not None:
+            return int(cursor), int(count)
+    return None
+
+
+def _is_max_value(writer: Any) -> bool:
+    return hasattr(writer, "_current_top_values") and hasattr(writer, "_rank_key")
 
 
 def _position(writer: Any) -> tuple[int, int] | None:
@@ -47,11 +71,34 @@ def restore_writers(storage: Any, cursor: int, write_count: int, done: weakref.W
     for writer in attached_writers(storage):
         if writer in done and not force:
             continue
-        if _position(writer) is not None:
+        if _is_max_value(writer):
+            _restore_max_value(writer, storage, cursor, write_count)
+        elif _position(writer) is not None:
             state = writer.state_dict()
             state.update({"_cursor": cursor, "_write_count": write_count})
             writer.load_state_dict(state)
         done.add(writer)
+
+
+def _restore_max_value(writer: Any, storage: Any, cursor: int, write_count: int) -> None:
+    """A ``TensorDictMaxValueWriter`` at the stored rows: its heap holds (rank, row) of every stored row, as its
+    writes left it (rank: the row's ``rank_key``, reduced as the writer reduces it)."""
+    import heapq
+
+    import torch
+    from torchrl.data.replay_buffers.writers import max_value
+
+    n = len(storage)
+    top = []
+    if n:
+        ranks = storage.get(torch.arange(n)).get(writer._rank_key).reshape(n, -1)
+        for row in range(n):
+            rank = ranks[row]
+            top.append(((max_value._reduce(rank, writer._reduction, dim=0) if rank.numel() > 1 else rank).item(), row))
+    heapq.heapify(top)
+    writer._current_top_values = top
+    writer._cursor = cursor
+    writer._write_count = write_count
 
 
 def rollback_writers(storage: Any, first_row: int, n: int, max_dim0: int) -> None:

@@ -251,7 +251,11 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     @property
     def write_count(self) -> int:
-        """Transitions written to this store since it was created (or emptied): the writer's count."""
+        """Transitions written to this store since it was created (or emptied), as the store counts them.
+
+        The attached TorchRL writer keeps its own count (``rb.write_count``; it differs after ``write_at``,
+        ``empty(empty_write_count=False)`` or with ``dim_extend=1``): that one is recorded beside this one,
+        and a reopen hands it back to the writer."""
         return self._store.write_count
 
     def resume_writers(self) -> None:
@@ -335,6 +339,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                     self._store.advance(n, int(rows[-1]) + 1)
                 else:
                     self._store.note_in_place()
+                self._store.follow_writers(self)  # TorchRL's writer moved before this call: its position now
                 self._engine.mark_dirty(dirty, self._mirror.chunk_rows)
             self._engine.kick(notify=completes_chunk(rows, self._mirror.chunk_rows))
 
@@ -345,7 +350,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             rows = cursor_rows(cursor, self._mirror.max_dim0)
             need = int(rows.max()) + 1 if rows.numel() else 0
         if need > self._mirror.max_dim0:
-            self.flush()
+            self._store.flush()  # not self.flush(): inside a set, TorchRL's writer has moved past rows not written yet
             if self._store.grow_for(need):
                 with self._engine.cv:
                     self._allocate()
@@ -395,7 +400,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def _evolve_schema(self, data: TensorDictBase, new_paths: list[str], single: bool) -> None:
         """Adds columns for keys the store did not hold yet (older rows read zeros)."""
-        self.flush()  # committed rows first: the new arrays start from a clean state
+        self._store.flush()  # committed rows first: the new arrays start from a clean state
         self._schema.add_columns(data, new_paths, single, filled=self._len_along_dim0)
         with self._engine.cv:
             self._allocate()
@@ -413,6 +418,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         with lifecycle.critical(), self._own_write(), self._engine.cv:
             super()._empty()
             self._store.reset()
+            self._store.follow_writers(self)  # the writer emptied first (it may keep its count)
         self.flush()
 
     # -- reads ---------------------------------------------------------------------------------
@@ -451,11 +457,13 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         return self._store.scanning()
 
     def flush(self) -> None:
-        """Blocks until every row written so far is durable and committed."""
+        """Blocks until every row written so far is durable and committed (with the attached writer's position)."""
+        self._store.follow_writers(self, record=True)
         self._store.flush()
 
     def close(self) -> None:
         """Flushes, stops the writer and releases the store. Idempotent; optional (see :meth:`MemoryStore.close`)."""
+        self._store.follow_writers(self, record=True)
         self._store.close()
 
     def __enter__(self) -> ZarrStorage:
@@ -520,6 +528,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
             # written as a TensorDict, read back as the source's kind (or the store's)
             self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tagged)
+            self._set_last_cursor(None)  # as TensorStorage.load_state_dict leaves it: no last write to slice from
             self._store.load_position(meta, rows, n0, tagged)
         self._store.restore_writers(self, force=True)
         self._bump_own()
