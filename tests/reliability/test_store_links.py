@@ -250,3 +250,54 @@ def test_a_link_where_a_sealed_writer_writes_next_refuses_the_write_not_the_open
         {k: v for k, v in before.items() if not k.startswith(("_rows", "observation/c/3"))}
     with ZarrStorage(str(path), read_only=True) as r:  # the committed rows, as before the refused write
         assert len(r) == ROWS and torch.equal(r[:]["observation"], _rows(ROWS, 0.0)["observation"])
+
+
+# -- found by a review of every command (2026-11-29): writes that left the store ------------------------------
+
+
+def test_a_seal_name_hard_linked_to_a_file_outside_is_never_written(folder):
+    """A writer's clean close writes its seal to a temporary file of its own (``O_EXCL | O_NOFOLLOW``): names the
+    store already holds (here every name the old code used, hard links to a private file) are never opened."""
+    a = folder / "a.zarr"
+    (a / "_rows").mkdir(exist_ok=True)
+    for pid in {os.getpid(), *range(os.getpid() - 3, os.getpid() + 4)}:
+        os.link(folder / "secret.txt", a / "_rows" / f"seal.{pid}.tmp")
+    with ZarrStorage(str(a), MAX) as s:
+        s.set(slice(ROWS, ROWS + 4), _rows(4, 100.0))
+    assert (folder / "secret.txt").read_bytes() == SECRET
+    assert (a / "_rows" / "seal.json").exists()
+
+
+@pytest.mark.parametrize("spelling", ["dotdot", "link"])
+def test_a_copy_into_its_own_source_is_refused_however_the_path_is_spelled(folder, spelling, capsys):
+    a = folder / "a.zarr"
+    if spelling == "dotdot":
+        (folder / "x").mkdir()
+        dst = folder / "x" / ".." / "a.zarr" / "sub.zarr"
+    else:
+        os.symlink(a, folder / "alias")
+        dst = folder / "alias" / "sub.zarr"
+    before = _hash_tree(a)
+    assert main(["copy", str(a), str(dst)]) != 0
+    assert "inside it" in capsys.readouterr().err
+    assert _hash_tree(a) == before
+
+
+def test_a_copy_from_an_object_store_never_writes_a_key_outside_the_copy(folder, tmp_path, capsys, s3_server,  # noqa: F811
+                                                                          monkeypatch):
+    """An object store's keys are any strings: ``m.zarr/action/../../..`` names a place outside the copy."""
+    for k, v in s3_server.child_env().items():
+        if k.startswith("AWS_"):
+            monkeypatch.setenv(k, v)
+    bucket = new_bucket(s3_server)
+    assert main(["copy", str(folder / "a.zarr"), f"s3://{bucket}/m.zarr"]) == 0
+    import s3fs
+
+    fs = s3fs.S3FileSystem(**s3_server.storage_options, skip_instance_cache=True, use_listings_cache=False)
+    outside = tmp_path / "outside" / "planted.txt"
+    depth = len((tmp_path / "dst" / "copy.zarr").parts)
+    fs.pipe(f"{bucket}/m.zarr/action/" + "../" * (depth + 2) + str(outside).lstrip("/"), SECRET)
+    capsys.readouterr()
+    assert main(["copy", f"s3://{bucket}/m.zarr", str(tmp_path / "dst" / "copy.zarr")]) != 0
+    assert "outside the copy" in capsys.readouterr().err
+    assert not outside.exists() and not (tmp_path / "dst" / "copy.zarr").exists()

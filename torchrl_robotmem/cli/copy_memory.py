@@ -56,6 +56,10 @@ def _files(fs, root: str) -> list[str]:
     if fs.isfile(root):
         return [""]
     rel = sorted(p[len(root.rstrip("/")) + 1:] for p in fs.find(root, withdirs=False))
+    for p in rel:  # an object store's keys are any strings: one naming a place outside the copy is refused
+        if not p or p.startswith("/") or "\\" in p or any(part in ("", ".", "..") for part in p.split("/")):
+            raise CLIError(f"the memory at {root!r} holds a file named {p!r}, which would be written outside the "
+                           f"copy ('..', '.', an empty or absolute part): nothing was copied. Remove that key.")
     rel = [p for p in rel if not p.startswith(ROWS_DIR + "/")]
     return [p for p in rel if p != _RECORD] + ([_RECORD] if _RECORD in rel else [])
 
@@ -144,6 +148,8 @@ def copy_memory(src: Any, dst: str) -> dict[str, Any]:
     finally:
         storage.close()
     s, d = str(normalize_path(src)), str(normalize_path(dst))
+    if is_local(src) and is_local(dst):  # the places themselves: '..' and links resolved
+        s, d = os.path.realpath(s), os.path.realpath(d)
     if s == d or d.startswith(s.rstrip("/") + "/") or s.startswith(d.rstrip("/") + "/"):
         raise CLIError(f"{dst!r} is {src!r} or inside it (or the reverse): copy to another place")
     _refuse_existing(dst)

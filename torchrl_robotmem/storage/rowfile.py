@@ -50,6 +50,7 @@ import json
 import math
 import mmap
 import os
+import secrets
 import tempfile
 from typing import Any
 
@@ -377,8 +378,11 @@ class RowFile:
         st = os.fstat(self.fd)
         seal = {"version": SEAL_VERSION, "record": record_digest(attrs), "layout": layout,
                 "file": [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns], "open_ends": [int(r) for r in open_ends]}
-        tmp = os.path.join(self.folder, f"seal.{os.getpid()}.tmp")
-        with open(tmp, "w") as f:
+        tmp = os.path.join(self.folder, f"seal.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+        # a new file of its own (O_EXCL | O_NOFOLLOW): a name the store already holds, a link (soft or
+        # hard) to a file outside it, is never opened, let alone written
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
+        with os.fdopen(fd, "w") as f:
             json.dump(seal, f)
             f.flush()
             os.fsync(f.fileno())
