@@ -20,7 +20,9 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import subprocess
 import sys
+import zipfile
 
 import pytest
 import torch
@@ -301,3 +303,47 @@ def test_a_copy_from_an_object_store_never_writes_a_key_outside_the_copy(folder,
     assert main(["copy", f"s3://{bucket}/m.zarr", str(tmp_path / "dst" / "copy.zarr")]) != 0
     assert "outside the copy" in capsys.readouterr().err
     assert not outside.exists() and not (tmp_path / "dst" / "copy.zarr").exists()
+
+
+@pytest.mark.parametrize("where", ["observation/c/1/0", "zarr.json"], ids=["a chunk", "the record"])
+def test_a_named_pipe_in_a_store_is_refused_never_read(folder, where):
+    """A FIFO (``tar`` and ``cp -a`` carry them) blocked every reader for ever: each command now names it and stops.
+
+    Each command runs in a child process with a deadline, so a regression fails the test instead of hanging it.
+    """
+    a = folder / "a.zarr"
+    os.remove(a / where)
+    os.mkfifo(a / where)
+    before = _hash_tree(folder)
+    for argv in (["verify", str(a)], ["inspect", str(a)], ["copy", str(a), str(folder / "copy.zarr")]):
+        out = subprocess.run([sys.executable, "-m", "torchrl_robotmem", *argv], capture_output=True, text=True,
+                             timeout=240)
+        assert out.returncode != 0, (argv, out.stdout, out.stderr)
+        assert "named pipe" in out.stderr + out.stdout or "not a regular file" in out.stderr + out.stdout, (argv, out.stderr)
+    code = f"from torchrl_robotmem import ZarrStorage\nZarrStorage({str(a)!r}, read_only=True)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
+    assert out.returncode != 0 and "named pipe" in out.stderr, out.stderr[-2000:]
+    assert not (folder / "copy.zarr").exists()
+    assert _hash_tree(folder) == before
+
+
+def test_a_local_url_is_walked_for_links_as_a_path_is(folder):
+    a = folder / "a.zarr"
+    key = _link_other_memorys_chunk(a, folder)
+    for name in (f"local://{a}", f"file://{a}", str(a)):
+        with pytest.raises(LinkError, match=key):
+            ZarrStorage(name, read_only=True)
+
+
+def test_a_zip_path_is_never_created_by_repair_nor_written_when_it_holds_no_store(tmp_path, capsys):
+    typo = tmp_path / "typo.zip"
+    assert main(["repair", str(typo)]) != 0
+    assert "does not exist" in capsys.readouterr().err
+    assert not typo.exists()
+    photos = tmp_path / "photos.zip"
+    with zipfile.ZipFile(photos, "w") as z:
+        z.writestr("holiday.jpg", b"\xff\xd8 not a store")
+    before = photos.read_bytes()
+    with pytest.raises(ValueError, match="holds no Zarr store"):
+        ZarrStorage(str(photos), 100)
+    assert photos.read_bytes() == before

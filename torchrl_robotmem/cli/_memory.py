@@ -106,6 +106,8 @@ def open_memory(path: Any):
             if not os.path.lexists(record):
                 raise not_a_memory(path, "a directory without zarr.json: not a Zarr store")
             if not os.path.islink(record):  # a link is never read: the open below refuses the store, naming it
+                if not os.path.isfile(record):  # a named pipe would block the read for ever
+                    raise not_a_memory(path, "zarr.json is not a regular file")
                 try:
                     with open(record) as f:
                         meta = json.load(f)

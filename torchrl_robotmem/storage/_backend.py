@@ -11,6 +11,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import stat
 import time
 from pathlib import Path
 from typing import Any
@@ -112,17 +113,33 @@ def is_url(path: str) -> bool:
 def normalize_path(path: str | os.PathLike | Any) -> str | Any:
     """The canonical name of a store: an absolute local path, a URL, or the Store itself.
 
-    ``file://`` URLs become local paths. Two handles on the same store get the
+    ``file://`` and ``local://`` URLs become local paths. Two handles on the same store get the
     same name (it keys the in-process writer registry and checkpoint pointers).
     """
     if not isinstance(path, (str, os.PathLike)):
         return path
     spath = os.fspath(path)
-    if spath.startswith("file://"):
-        spath = spath[len("file://") :]
+    for local in ("file://", "local://"):  # fsspec's names of the local filesystem: a path, walked for links
+        if spath.startswith(local):
+            spath = spath[len(local):]
     if is_url(spath):
         return spath
     return str(Path(spath).expanduser().absolute())
+
+
+def _check_zip_store(path: str) -> None:
+    """Raises ``ValueError`` unless the zip file at ``path`` is empty or holds a Zarr store (a ``zarr.json``)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+    except zipfile.BadZipFile:
+        raise ValueError(f"{path!r} is not a zip file: refusing to write into it. Name a new '*.zip' path "
+                         f"or a Zarr zip store.") from None
+    if names and "zarr.json" not in names:
+        raise ValueError(f"{path!r} is a zip file that holds no Zarr store (no zarr.json among its "
+                         f"{len(names)} members): refusing to write into it. Name a new '*.zip' path.")
 
 
 def store_exists(path: str | os.PathLike | Any) -> bool:
@@ -169,6 +186,8 @@ def open_store(path: str | os.PathLike | Any, *, read_only: bool, storage_option
 
         if read_only and not os.path.exists(spath):
             raise FileNotFoundError(f"No Zarr zip store at {spath!r}.")
+        if not read_only and os.path.exists(spath):
+            _check_zip_store(spath)
         # opened here (Store.open), not lazily by the first open_group: integrity checks read keys first
         return sync(ZipStore.open(spath, mode="r" if read_only else "a")), None
     if is_url(spath):
@@ -594,10 +613,28 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
                     except OSError:
                         target = "?"
                     out.append((os.path.relpath(entry.path, root).replace(os.sep, "/"), target))
+            elif not entry.is_dir(follow_symlinks=False) and not entry.is_file(follow_symlinks=False):
+                # a named pipe, a socket, a device: a read of one blocks for ever or reads what is not a file
+                if chunks is not None or chunk_folder:
+                    out.append((os.path.relpath(entry.path, root).replace(os.sep, "/"), special_kind(entry.path)))
             elif entry.is_dir(follow_symlinks=False) and not (chunk_folder and chunks is False) \
                     and not (inside and chunks is None):
                 stack.append((entry.path, chunk_folder, inside))
     return sorted(out)
+
+
+def special_kind(path: str) -> str:
+    """``"<a named pipe>"`` / ``"<a socket>"`` / ``"<a device>"``: how :func:`links_below` names a special file.
+
+    Example:
+        >>> import os, tempfile
+        >>> d = tempfile.mkdtemp(); os.mkfifo(d + "/p")
+        >>> special_kind(d + "/p")
+        '<a named pipe>'
+    """
+    mode = os.lstat(path).st_mode
+    kind = "a named pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+    return f"<{kind}>"
 
 
 def refuse_links(directory: str | os.PathLike, name: Any, *, chunks: bool | None = True) -> None:

@@ -99,13 +99,17 @@ class LinkError(IntegrityError):
     """
 
     def __init__(self, path: Any, links: list[tuple[str, str]]):
-        problems = [Problem("link", f"a symbolic link (to {target!r}): a store's files must lie inside it", key=key)
-                    for key, target in links]
-        shown = ", ".join(f"{key} -> {target!r}" for key, target in links[:3])
+        special = [target.startswith("<") and target.endswith(">") for _, target in links]
+        problems = [Problem("link", f"not a regular file ({target[1:-1]}): a store holds files and folders only"
+                            if odd else f"a symbolic link (to {target!r}): a store's files must lie inside it", key=key)
+                    for (key, target), odd in zip(links, special)]
+        shown = ", ".join(f"{key} ({target[1:-1]})" if odd else f"{key} -> {target!r}"
+                          for (key, target), odd in list(zip(links, special))[:3])
         more = f" and {len(links) - 3} more" if len(links) > 3 else ""
+        what = "symbolic link" if not any(special) else "symbolic link or special file"
         ValueError.__init__(
             self,
-            f"{path!r} holds {len(links)} symbolic link{'s' if len(links) != 1 else ''} ({shown}{more}): a memory's "
+            f"{path!r} holds {len(links)} {what}{'s' if len(links) != 1 else ''} ({shown}{more}): a memory's "
             f"files must lie inside it, so it is refused (nothing was read through the links, nothing written). "
             f"Replace each link by a copy of the file it names if you trust that file "
             f"(cp --remove-destination \"$(readlink -f LINK)\" LINK), or remove it and run `robotmem repair {path}`.")

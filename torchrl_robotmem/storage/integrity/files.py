@@ -83,6 +83,8 @@ def open_any(path: Any, storage_options: dict | None, *, writable: bool = False)
         from zarr.storage import LocalStore
 
         return LocalStore(name, read_only=not writable), name
+    if isinstance(name, str) and name.endswith(".zip") and not _backend.is_url(name) and not os.path.exists(name):
+        raise NotAMemoryError(f"{name!r} does not exist")  # never created by a command that mends a store
     try:
         return _backend.open_store(name, read_only=not writable, storage_options=storage_options)
     except (FileNotFoundError, ValueError) as err:
