@@ -243,6 +243,37 @@ def test_minari_dataset_of_fetch_episodes(sources, tmp_path, capsys):
     _continuous(target)
 
 
+@pytest.mark.parametrize("how", ["external storage", "external link"])
+def test_a_minari_dataset_whose_data_lies_in_another_file_is_refused(sources, tmp_path, capsys, how):
+    """HDF5 lets a dataset keep its bytes in any file (external raw storage, external links): an import would copy
+    a private file into the memory. The import refuses, naming the dataset, and creates nothing."""
+    import shutil
+
+    import h5py
+
+    ds = tmp_path / "evil-v0"
+    shutil.copytree(sources["minari"], ds)
+    secret = tmp_path / "private" / "id_rsa"
+    secret.parent.mkdir()
+    with h5py.File(ds / "data" / "main_data.hdf5", "a") as f:
+        actions = f["episode_0/actions"]
+        shape, dtype = actions.shape, actions.dtype
+        secret.write_bytes(b"private key bytes " * (int(np.prod(shape)) * dtype.itemsize // 18 + 1))
+        del f["episode_0/actions"]
+        if how == "external storage":
+            f.create_dataset("episode_0/actions", shape=shape, dtype=dtype,
+                             external=[(str(secret), 0, int(np.prod(shape)) * dtype.itemsize)])
+        else:
+            other = tmp_path / "private" / "other.hdf5"
+            with h5py.File(other, "w") as g:
+                g.create_dataset("actions", data=np.zeros(shape, dtype))
+            f["episode_0/actions"] = h5py.ExternalLink(str(other), "/actions")
+    target = tmp_path / "imported.zarr"
+    rc, _, err = _import(capsys, ds, target, "--env", ENV)
+    assert rc != 0 and "episode_0/actions" in err and "outside it" in err, err
+    assert not target.exists()
+
+
 def test_plain_npz_and_float64(sources, tmp_path, capsys):
     target = tmp_path / "plain.zarr"
     rc, out, _ = _import(capsys, sources["npz"], target)

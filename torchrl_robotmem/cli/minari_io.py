@@ -241,7 +241,47 @@ def open_minari(src: str):
         raise CLIError(f"{data_dir!r}: the Minari dataset cannot be opened ({type(err).__name__}: {err}); a "
                        f"cut-off or damaged export? Export it again") from None
     _check_minari_complete(ds, data_dir)
+    _refuse_outside_data(os.path.join(data_dir, "main_data.hdf5"))
     return ds, data_dir
+
+
+def _refuse_outside_data(h5_path: str) -> None:
+    """Raises a :class:`CLIError` naming them if datasets of the HDF5 file keep their bytes outside it.
+
+    HDF5 lets a dataset read another file: external raw storage (any path), a virtual dataset over other
+    files, an external link. An import would read that file into the new memory, so a dataset made by
+    someone else could carry any file the user can read into a memory they later share. Soft links
+    name objects of the same file and are followed.
+    """
+    if not os.path.isfile(h5_path):
+        return  # another storage format (arrow): its columns are the dataset's own files
+    import h5py
+
+    bad: list[str] = []
+    with h5py.File(h5_path, "r") as f:
+        stack = [f]
+        while stack:
+            group = stack.pop()
+            for name in group:
+                path = f"{group.name.rstrip('/')}/{name}"
+                link = group.get(name, getlink=True)
+                if isinstance(link, h5py.ExternalLink):
+                    bad.append(f"{path} (a link to {link.filename}:{link.path})")
+                    continue
+                if isinstance(link, h5py.SoftLink):
+                    continue  # an object of this file, checked where it lies
+                obj = group[name]
+                if isinstance(obj, h5py.Group):
+                    stack.append(obj)
+                elif isinstance(obj, h5py.Dataset) and obj.external:
+                    bad.append(f"{path} (its bytes in {obj.external[0][0]!r})")
+                elif isinstance(obj, h5py.Dataset) and obj.is_virtual:
+                    bad.append(f"{path} (a virtual dataset over other files)")
+    if bad:
+        shown = ", ".join(sorted(bad)[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
+        raise CLIError(f"{h5_path!r} holds {len(bad)} dataset(s) whose bytes lie outside it ({shown}): importing "
+                       f"would copy another file into the memory, so nothing was imported. Export the dataset "
+                       f"again with its data inside the file.")
 
 
 def _check_minari_complete(ds, data_dir: str) -> None:
