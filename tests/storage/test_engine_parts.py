@@ -549,3 +549,25 @@ def test_a_writers_open_removes_partials_where_it_writes_and_repair_removes_the_
     assert old.exists() and not tail.exists()
     report = repair(str(path))
     assert report.actions == ["removed 1 partial file(s) of writes a killed writer left"] and not old.exists()
+
+
+def test_a_writers_open_refused_for_damage_leaves_the_partial_files(tmp_path):
+    """The partial files go once every check of the open passed: a refused open changes no file (found by a review:
+    they were deleted before the checks, and the unsealed open below found the damage while reading the rows)."""
+    import shutil
+
+    from torchrl_robotmem import ZarrStorage
+    from torchrl_robotmem.storage.errors import IntegrityError
+
+    sealed = tmp_path / "sealed.zarr"
+    with ZarrStorage(str(sealed), 64, chunk_rows=8, goal_conditioned=False, env="E") as st:
+        st.set(slice(0, 20), TensorDict({"obs": torch.arange(60.0).reshape(20, 3)}, [20]))
+    path = tmp_path / "m.zarr"
+    shutil.copytree(sealed, path)  # a copy: its row file's seal no longer matches, so the open reads the chunks
+    tail = path / "obs" / "c" / "2" / "0.tail.partial"
+    tail.write_bytes(b"left by a killed writer")
+    chunk = path / "obs" / "c" / "1" / "0"
+    chunk.write_bytes(chunk.read_bytes()[: len(chunk.read_bytes()) // 2])  # damage
+    with pytest.raises(IntegrityError, match="obs"):
+        ZarrStorage(str(path), goal_conditioned=False)
+    assert tail.read_bytes() == b"left by a killed writer"

@@ -189,8 +189,6 @@ class StoreHandle:
             self.create(attrs, max_size, chunk_rows, ndim)
             attrs = self.group.attrs.asdict()
         self.check_format(attrs)
-        if not self.read_only and self.local_dir is not None:
-            _backend.remove_partial_files(self.local_dir, attrs)  # left by a writer killed mid-write
         # before anything is read or written: a damaged store raises, naming the array and chunk
         grows = max_size is not None and int(max_size) != attrs.get("max_size")
         decode = not self.read_only and (bool(attrs.get("journal")) or grows)

@@ -214,12 +214,16 @@ class MemoryStore:
         record = _backend.open_group(self.handle.store, read_only=True).attrs.asdict()
         rows.seal(record, layout=self.mirror.file_layout(), open_ends=ends.tolist())
 
-    def open_arrays(self) -> None:
+    def open_arrays(self, attrs: dict) -> None:
         """A writer's handles on the stored arrays; starts its commit worker (after the open's reads).
 
+        The partial files a writer killed mid-write left (``attrs``: the record the open found) are removed
+        here, once every check of the open passed: an open refused for damage leaves every file as it was.
         A writer given ``goal_conditioned=`` first records it if the store says otherwise, so that a
         later ``ZarrStorage(path)`` remembers it (a store never told keeps no attribute).
         """
+        if self.handle.local_dir is not None:
+            _backend.remove_partial_files(self.handle.local_dir, attrs)
         if self.goal_conditioned != self.recorded_goal_conditioned:
             self.engine.update_attrs({GOAL_CONDITIONED: self.goal_conditioned})
             self.recorded_goal_conditioned = self.goal_conditioned

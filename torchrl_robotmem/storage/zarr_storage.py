@@ -132,7 +132,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._load_rows(attrs)
         if not self.read_only:
             self.env = attrs.get("env") if env is None else env  # by default, the previous run's env
-            store.open_arrays()
+            store.open_arrays(attrs)
             lifecycle.register_writer(self)  # flushed at exit and on SIGTERM
             if self._mirror.schema is not None:  # committed with the next commit, as any write (a crash before
                 # it leaves them open, and the next open closes them again)
