@@ -90,6 +90,21 @@ def test_uniform_ratio_mixes_uniform_rows():
     torch.testing.assert_close(batch["goal_distance"], d)
 
 
+@pytest.mark.parametrize("nan_share", [0.5, 0.999])
+def test_uniform_rows_of_a_query_never_have_a_non_finite_goal(nan_share):
+    """Found by a review: with no filter, the uniform part of a queried batch drew rows whose goal is NaN (their
+    goal_distance NaN), while a filter every row passes drew none. Rows with a non-finite goal are never drawn."""
+    rb, _ = make_rb(GoalSimilaritySampler(num_candidates=16, uniform_ratio=1.0), n=2000, batch_size=1000)
+    bad = torch.arange(int(2000 * nan_share))
+    rb.storage._storage[GOAL][bad, 0] = float("nan")
+    rb.storage._storage[GOAL][bad[::7], 1] = float("inf")
+    rb.sampler.set_query(torch.tensor([0.5, 0.5, 0.5]))
+    for _ in range(3):
+        batch = rb.sample()
+        assert torch.isfinite(batch[GOAL]).all() and torch.isfinite(batch["goal_distance"]).all()
+        assert not torch.isin(batch["index"], bad).any()
+
+
 def test_success_only_and_env_filters_are_respected():
     sampler = GoalSimilaritySampler(success_only=True, env="FetchSlide-v4", env_names=ENV_NAMES,
                                     uniform_ratio=0.3, num_candidates=64)
