@@ -86,7 +86,9 @@ class GoalSimilaritySampler(JsonStateDumps, Sampler):
             :class:`~torchrl_robotmem.goal_index.RowFilter`): ``success_only``,
             ``env`` (names or codes of the storage's ``env`` column) and
             ``run`` for every draw; ``max_distance`` and ``one_per_episode``
-            for the near candidates of a query. Defaults to every row.
+            for the near candidates of a query (a query with no row within
+            ``max_distance`` gets no share of the batch; the others share it,
+            and if no query has one, ``sample`` raises). Defaults to every row.
         **filter_keywords: the same as keywords instead, e.g.
             ``success_only=True, env="FetchPush-v4"``.
 
@@ -228,10 +230,13 @@ class GoalSimilaritySampler(JsonStateDumps, Sampler):
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
         dist, idx, mask = index.search(self._query, self.num_candidates, filter=self.filter)
-        if not bool(mask[:, 0].all()):
+        found = mask[:, 0]
+        if not bool(found.any()):
             raise RuntimeError(
                 f"no stored row matches the sampler's filter {self.filter!r}; cannot sample near the query."
             )
+        if not bool(found.all()):  # a query with nothing in reach (max_distance): the others share the batch
+            dist, idx, mask = dist[found], idx[found], mask[found]
         logits = (-dist.double() / self.temperature).masked_fill(~mask, -math.inf)
         probs = torch.softmax(logits, dim=1)
         cand = (probs, idx, dist)

@@ -105,6 +105,18 @@ def test_uniform_rows_of_a_query_never_have_a_non_finite_goal(nan_share):
         assert not torch.isin(batch["index"], bad).any()
 
 
+def test_a_query_with_nothing_within_max_distance_leaves_the_batch_to_the_others():
+    """Found by a review: one query out of reach made sample() refuse although rows matched the other."""
+    rb, _ = make_rb(GoalSimilaritySampler(num_candidates=16, max_distance=0.2), n=2000, batch_size=64)
+    near, far = torch.tensor([0.5, 0.5, 0.5]), torch.tensor([5.0, 5.0, 5.0])
+    rb.sampler.set_query(torch.stack([near, far]))
+    batch = rb.sample()
+    assert len(batch) == 64 and (goal_dist(batch, near) <= 0.2 + 1e-6).all()
+    rb.sampler.set_query(far.unsqueeze(0))
+    with pytest.raises(RuntimeError, match="no stored row matches"):
+        rb.sample()
+
+
 def test_success_only_and_env_filters_are_respected():
     sampler = GoalSimilaritySampler(success_only=True, env="FetchSlide-v4", env_names=ENV_NAMES,
                                     uniform_ratio=0.3, num_candidates=64)
