@@ -884,8 +884,8 @@ def pnp_proposer_60k(root: Path) -> str:
     return f"{head} That is {_ms_a_goal(summary):.0f} ms a proposed goal.\n\n{t}"
 
 
-PNP43_150K_CONTROL = Runs("SAC+HER from scratch", "pnp43-150k-control-s{}", seeds=(0,))
-PNP43_150K_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-150k-propose-s{}", seeds=(0,))
+PNP43_150K_CONTROL = Runs("SAC+HER from scratch", "pnp43-150k-control-s{}", seeds=(0, 1))
+PNP43_150K_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-150k-propose-s{}", seeds=(0, 1))
 
 
 def pnp_proposer_150k(root: Path) -> str:
