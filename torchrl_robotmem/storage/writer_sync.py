@@ -46,9 +46,9 @@ def writer_position(storage: Any) -> tuple[int, int] | None:
     generation stamps): this runs after every write.
     """
     for writer in attached_writers(storage):
-        cursor, count = getattr(writer, "_cursor", None), getattr(writer, "_write_count", None)
-        if cursor is not None and count is not None:
-            return int(cursor), int(count)
+        at = _position(writer)
+        if at is not None:
+            return at
     return None
 
 
@@ -57,13 +57,11 @@ def _is_max_value(writer: Any) -> bool:
 
 
 def _position(writer: Any) -> tuple[int, int] | None:
-    try:
-        state = writer.state_dict()
-    except Exception:  # noqa: BLE001 - writers without a position (e.g. immutable ones)
+    """``(cursor, write_count)`` of a writer that keeps them (round-robin and max-value writers), else ``None``."""
+    cursor, count = getattr(writer, "_cursor", None), getattr(writer, "_write_count", None)
+    if cursor is None or count is None:
         return None
-    if "_cursor" not in state:
-        return None
-    return int(state["_cursor"]), int(state.get("_write_count") or 0)
+    return int(cursor), int(count)
 
 
 def restore_writers(storage: Any, cursor: int, write_count: int, done: weakref.WeakSet, *, force: bool = False) -> None:
@@ -85,16 +83,16 @@ def _restore_max_value(writer: Any, storage: Any, cursor: int, write_count: int)
     writes left it (rank: the row's ``rank_key``, reduced as the writer reduces it)."""
     import heapq
 
-    import torch
     from torchrl.data.replay_buffers.writers import max_value
+
+    from .columns import read_column
 
     n = len(storage)
     top = []
     if n:
-        ranks = storage.get(torch.arange(n)).get(writer._rank_key).reshape(n, -1)
-        for row in range(n):
-            rank = ranks[row]
-            top.append(((max_value._reduce(rank, writer._reduction, dim=0) if rank.numel() > 1 else rank).item(), row))
+        ranks = read_column(storage, writer._rank_key, n).reshape(n, -1)
+        values = ranks[:, 0] if ranks.shape[1] == 1 else max_value._reduce(ranks, writer._reduction, dim=1)
+        top = list(zip(values.tolist(), range(n)))
     heapq.heapify(top)
     writer._current_top_values = top
     writer._cursor = cursor
@@ -110,7 +108,7 @@ def rollback_writers(storage: Any, first_row: int, n: int, max_dim0: int) -> Non
     if n == 0:  # an empty write did not move the cursor
         return
     for writer in attached_writers(storage):
-        pos = _position(writer)
+        pos = None if _is_max_value(writer) else _position(writer)  # a max-value writer has no state_dict
         if pos is not None and pos[0] == (first_row + n) % max_dim0:
             state = writer.state_dict()
             state.update({"_cursor": first_row, "_write_count": pos[1] - n})
