@@ -176,3 +176,43 @@ def test_a_forged_writer_entry_is_ignored_for_the_store_s_own_position(tmp_path,
     again = TensorDictReplayBuffer(storage=_zarr(path), batch_size=2)
     assert _position(again) == {"_cursor": 5, "_write_count": 5}  # the store's own cursor and count
     again.storage.close()
+
+
+def test_a_sigterm_between_the_writer_s_cursor_move_and_its_set_records_the_last_write(tmp_path):
+    """TorchRL's writer moves its cursor, then calls ``storage.set``: a SIGTERM landing between the two
+    flushes the memory. The record must name the rows written (cursor 5 of a wrapped ring of 25 after
+    30 rows), not the move of a batch that never reached the store (cursor 15, count 40)."""
+    path = tmp_path / "m.zarr"
+    code = textwrap.dedent(f"""
+        import os, signal, torch
+        from tensordict import TensorDict
+        from torchrl.data import TensorDictReplayBuffer
+        from torchrl_robotmem import ZarrStorage
+
+        class SignalBeforeTheFourthSet(ZarrStorage):  # the signal lands where a writer has moved and not written
+            calls = 0
+            def set(self, cursor, data, *, set_cursor=True):
+                type(self).calls += 1
+                if type(self).calls == 4:
+                    print("SIGNAL", flush=True)
+                    os.kill(os.getpid(), signal.SIGTERM)
+                return super().set(cursor, data, set_cursor=set_cursor)
+
+        rb = TensorDictReplayBuffer(storage=SignalBeforeTheFourthSet({str(path)!r}, 25, goal_conditioned=False,
+                                                                     env="E"), batch_size=2)
+        for start in range(0, 40, 10):
+            rb.extend(TensorDict({{"obs": torch.arange(start, start + 10.0)}}, [10]))
+        print("NOT KILLED", flush=True)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert "SIGNAL" in out.stdout and out.returncode == -15, out.stdout + out.stderr
+    reference = TensorDictReplayBuffer(storage=LazyTensorStorage(25), batch_size=2)
+    for start in range(0, 30, 10):
+        reference.extend(_rows(start, 10))
+    again = TensorDictReplayBuffer(storage=_zarr(path), batch_size=2)
+    assert _position(again) == _position(reference) == {"_cursor": 5, "_write_count": 30}
+    assert again.storage[:]["obs"].tolist() == reference.storage[:]["obs"].tolist()
+    again.extend(_rows(100, 10))
+    reference.extend(_rows(100, 10))
+    assert again.storage[:]["obs"].tolist() == reference.storage[:]["obs"].tolist()  # the next batch lands at row 5
+    again.storage.close()

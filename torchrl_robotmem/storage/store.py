@@ -339,9 +339,14 @@ class MemoryStore:
         """Takes the position of the writer attached to ``storage`` (TorchRL's count) as the one to record.
 
         Called after each write (under the engine's lock: the commit that takes the rows takes the
-        position with them); ``record``: commit the record even if no row changed (an empty, a flush).
+        position with them); ``record``: commit the record even if no row changed (a flush, a close).
+        A flush or close from inside a writer's method (a SIGTERM handler that interrupted
+        ``writer.extend`` after its cursor moved and before its ``set``) keeps the position the last
+        write took: the moved one names rows that were never written.
         """
         if self.read_only or self.handle.closed:
+            return
+        if record and writer_sync.writing_now(storage):
             return
         at = writer_sync.writer_position(storage)
         if at is None or at == self.writer_at:

@@ -18,17 +18,21 @@ before a ``set`` that is refused. TorchRL has no storage -> writer channel, so:
   buffer moves the cursor itself, ``empty(empty_write_count=False)`` keeps the
   count, ``dim_extend`` counts items, not elements);
 * ``TensorDictMaxValueWriter`` has no ``state_dict``: its heap of (rank, row) is
-  rebuilt from the stored rows' rank key, which is what it held.
+  rebuilt from the stored rows' rank key, which is what it held;
+* a writer moves its cursor *before* it calls ``storage.set``: a flush that runs
+  between the two (a SIGTERM handler) must not record that position, whose rows
+  were never written; :func:`writing_now` sees a writer's method on the stack.
 
 ``docs/storage.md`` lists these private names.
 """
 from __future__ import annotations
 
+import sys
 import weakref
 from collections.abc import Iterator
 from typing import Any
 
-__all__ = ["attached_writers", "restore_writers", "rollback_writers", "writer_position"]
+__all__ = ["attached_writers", "restore_writers", "rollback_writers", "writer_position", "writing_now"]
 
 
 def attached_writers(storage: Any) -> Iterator[Any]:
@@ -50,6 +54,21 @@ def writer_position(storage: Any) -> tuple[int, int] | None:
         if at is not None:
             return at
     return None
+
+
+def writing_now(storage: Any) -> bool:
+    """Whether this thread is inside a method of a writer attached to ``storage`` (a signal handler that
+    interrupted ``writer.extend`` runs on top of it): its position may have moved for rows not yet written.
+    """
+    writers = [id(w) for w in attached_writers(storage)]
+    if not writers:
+        return False
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_code.co_argcount and id(frame.f_locals.get("self")) in writers:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _is_max_value(writer: Any) -> bool:
