@@ -60,12 +60,12 @@ def writing_now(storage: Any) -> bool:
     """Whether this thread is inside a method of a writer attached to ``storage`` (a signal handler that
     interrupted ``writer.extend`` runs on top of it): its position may have moved for rows not yet written.
     """
-    writers = [id(w) for w in attached_writers(storage)]
-    if not writers:
-        return False
+    writers = {id(w): w for w in attached_writers(storage)}
+    codes = {fn.__code__ for w in writers.values() for cls in type(w).__mro__ for fn in vars(cls).values()
+             if hasattr(fn, "__code__")}
     frame = sys._getframe(1)
     while frame is not None:
-        if frame.f_code.co_argcount and id(frame.f_locals.get("self")) in writers:
+        if frame.f_code in codes and id(frame.f_locals.get("self")) in writers:
             return True
         frame = frame.f_back
     return False
