@@ -178,34 +178,46 @@ def test_a_forged_writer_entry_is_ignored_for_the_store_s_own_position(tmp_path,
     again.storage.close()
 
 
-def test_a_sigterm_between_the_writer_s_cursor_move_and_its_set_records_the_last_write(tmp_path):
-    """TorchRL's writer moves its cursor, then calls ``storage.set``: a SIGTERM landing between the two
-    flushes the memory. The record must name the rows written (cursor 5 of a wrapped ring of 25 after
-    30 rows), not the move of a batch that never reached the store (cursor 15, count 40)."""
+@pytest.mark.parametrize("flusher", ["sigterm", "thread"])
+def test_a_flush_between_the_writer_s_cursor_move_and_its_set_records_the_last_write(tmp_path, flusher):
+    """TorchRL's writer moves its cursor, then calls ``storage.set``: a flush can run between the two (a
+    SIGTERM's handler; another thread's ``flush()``, the process then killed). The record must name the rows
+    written (cursor 5 of a wrapped ring of 25 after 30 rows), not the move of a batch that never reached the
+    store (cursor 15, count 40)."""
     path = tmp_path / "m.zarr"
     code = textwrap.dedent(f"""
-        import os, signal, torch
+        import os, signal, threading, torch
         from tensordict import TensorDict
         from torchrl.data import TensorDictReplayBuffer
         from torchrl_robotmem import ZarrStorage
 
-        class SignalBeforeTheFourthSet(ZarrStorage):  # the signal lands where a writer has moved and not written
+        def flush_and_kill(storage):  # from another thread, while the main thread waits before its set
+            storage.flush()
+            print("FLUSHED", flush=True)
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        class FlushBeforeTheFourthSet(ZarrStorage):  # lands where the writer has moved and not written
             calls = 0
             def set(self, cursor, data, *, set_cursor=True):
                 type(self).calls += 1
                 if type(self).calls == 4:
-                    print("SIGNAL", flush=True)
-                    os.kill(os.getpid(), signal.SIGTERM)
+                    print("FLUSH", flush=True)
+                    if {flusher!r} == "sigterm":
+                        os.kill(os.getpid(), signal.SIGTERM)
+                    else:
+                        t = threading.Thread(target=flush_and_kill, args=(self,))
+                        t.start()
+                        t.join()
                 return super().set(cursor, data, set_cursor=set_cursor)
 
-        rb = TensorDictReplayBuffer(storage=SignalBeforeTheFourthSet({str(path)!r}, 25, goal_conditioned=False,
-                                                                     env="E"), batch_size=2)
+        rb = TensorDictReplayBuffer(storage=FlushBeforeTheFourthSet({str(path)!r}, 25, goal_conditioned=False,
+                                                                    env="E"), batch_size=2)
         for start in range(0, 40, 10):
             rb.extend(TensorDict({{"obs": torch.arange(start, start + 10.0)}}, [10]))
         print("NOT KILLED", flush=True)
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert "SIGNAL" in out.stdout and out.returncode == -15, out.stdout + out.stderr
+    assert "FLUSH" in out.stdout and out.returncode == {"sigterm": -15, "thread": -9}[flusher], out.stdout + out.stderr
     reference = TensorDictReplayBuffer(storage=LazyTensorStorage(25), batch_size=2)
     for start in range(0, 30, 10):
         reference.extend(_rows(start, 10))

@@ -57,17 +57,18 @@ def writer_position(storage: Any) -> tuple[int, int] | None:
 
 
 def writing_now(storage: Any) -> bool:
-    """Whether this thread is inside a method of a writer attached to ``storage`` (a signal handler that
-    interrupted ``writer.extend`` runs on top of it): its position may have moved for rows not yet written.
+    """Whether a thread is inside a method of a writer attached to ``storage`` (a signal handler that
+    interrupted ``writer.extend`` runs on top of it; a flush from another thread runs beside it): its
+    position may have moved for rows not yet written.
     """
     writers = {id(w): w for w in attached_writers(storage)}
     codes = {fn.__code__ for w in writers.values() for cls in type(w).__mro__ for fn in vars(cls).values()
              if hasattr(fn, "__code__")}
-    frame = sys._getframe(1)
-    while frame is not None:
-        if frame.f_code in codes and id(frame.f_locals.get("self")) in writers:
-            return True
-        frame = frame.f_back
+    for frame in sys._current_frames().values():
+        while frame is not None:
+            if frame.f_code in codes and id(frame.f_locals.get("self")) in writers:
+                return True
+            frame = frame.f_back
     return False
 
 
