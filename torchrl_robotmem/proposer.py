@@ -299,14 +299,10 @@ class GoalProposer(Transform):
         return found.sum(-1)
 
     def _candidates(self, m: int) -> torch.Tensor | None:
-        """``m`` rows drawn uniformly among the stored rows ``filter`` keeps (``None``: no such row)."""
-        generator = self._rng()
-        if self.filter == RowFilter():
-            return torch.randint(len(self._source), (m,), generator=generator)
-        members = self.index.member_rows(filter=self.filter)
-        if members.numel() == 0:
-            return None
-        return members[torch.randint(members.numel(), (m,), generator=generator)]
+        """``m`` rows drawn uniformly among the stored rows ``filter`` keeps, goals that are NaN or inf left out
+        (``None``: no such row)."""
+        rows = self.index.draw_rows(m, self.filter, generator=self._rng())
+        return rows if rows.numel() else None
 
     def _rng(self) -> torch.Generator:
         if self._generator is None:

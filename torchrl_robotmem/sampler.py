@@ -245,20 +245,11 @@ class GoalSimilaritySampler(JsonStateDumps, Sampler):
 
     def _uniform_rows(self, index: GoalIndex, storage: Storage, n: int) -> torch.Tensor:
         """``n`` rows drawn uniformly among those passing the filters, rows with a non-finite goal left out."""
-        if self.filter.matches_all:  # TorchRL's draw over every row; a row whose goal is NaN or inf is drawn again
-            rows = _UNIFORM.sample(storage, n)[0].to(torch.long).cpu()
-            col = live_column(storage, self.goal_key)
-            for _ in range(8):
-                bad = ~torch.isfinite(col[rows.to(col.device)].reshape(n, -1)).all(-1).cpu()
-                if not bool(bad.any()):
-                    return rows
-                rows[bad] = _UNIFORM.sample(storage, int(bad.sum()))[0].to(torch.long).cpu()
-            # most goals are not finite: draw among the finite ones (the index's member rows)
-        rows = index.member_rows(self.filter)
+        rows = index.draw_rows(n, self.filter, draw=lambda count: _UNIFORM.sample(storage, count)[0],
+                               generator=self._rng)  # with no filter: TorchRL's draw over every row
         if rows.numel() == 0:
             raise RuntimeError(f"no stored row matches the sampler's filter {self.filter!r}.")
-        pick = torch.randint(rows.numel(), (n,), generator=self._rng)
-        return rows[pick]
+        return rows
 
     def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) == 0:

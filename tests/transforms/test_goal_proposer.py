@@ -62,6 +62,22 @@ def test_proposals_are_achieved_goals_of_the_sparse_region(clustered):
             .norm(dim=-1) > 0.09).all()
 
 
+@pytest.mark.parametrize("nan_share", [0.01, 0.5, 0.999])
+def test_a_goal_that_is_nan_or_inf_is_never_a_candidate(tmp_path, nan_share):
+    """Found by a review: with no filter the candidates were drawn over every row, and one whose goal is NaN
+    made the index refuse the density query (``ValueError``) at a reset. They are left out, as a filter does."""
+    g = torch.Generator().manual_seed(0)
+    goals = torch.rand(1000, 3, generator=g)
+    bad = torch.randperm(1000, generator=g)[: int(1000 * nan_share)]
+    goals[bad[::2], 1] = float("nan")
+    goals[bad[1::2], 0] = float("inf")
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000))
+    rb.extend(_goal_rows(goals))
+    proposed = GoalProposer(rb, ENV, num_candidates=100, k=3, warmup_rows=0, seed=0).propose(50)
+    assert proposed.shape == (50, 3) and torch.isfinite(proposed).all()
+    assert _stored(proposed, goals[torch.isfinite(goals).all(-1)])
+
+
 def test_near_goal_proposes_the_sparsest_remembered_goal_on_the_way_to_the_env_goal(clustered):
     """candidates="near_goal": only the stored goals nearest the env's goal compete; the sparsest of them wins."""
     path, center = clustered

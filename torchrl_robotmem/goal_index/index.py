@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,7 @@ from torchrl_robotmem.goal_index.filters import FilterKey, RowFilter
 from torchrl_robotmem.goal_index.metrics import GoalMetric, get_metric
 from torchrl_robotmem.goal_index.queries import check_k, parse_goals
 from torchrl_robotmem.goal_index.shared import SharedIndexes
-from torchrl_robotmem.goal_index.tracking import ColumnTracker, as_tensor_storage, stored_rows
+from torchrl_robotmem.goal_index.tracking import ColumnTracker, as_tensor_storage, live_column, stored_rows
 from torchrl_robotmem.goal_index.views import FilterView
 from torchrl_robotmem.storage.context import success_advice
 
@@ -299,6 +299,54 @@ class GoalIndex:
             if self._tracker.goal_shape is None or self._tracker.n == 0:
                 return torch.zeros(0, dtype=torch.int64)
             return self._view(key).member_rows()
+
+    def draw_rows(self, n: int, filter: FilterArg = None, *, draw: Callable[[int], torch.Tensor] | None = None,
+                  generator: torch.Generator | None = None) -> torch.Tensor:
+        """``n`` rows drawn uniformly, with replacement, among those passing the filter; a row whose goal is NaN
+        or inf is never drawn (as :meth:`search` never returns one). Empty when no row passes.
+
+        With no filter the draw is over every row (``draw(count)``, default ``torch.randint`` over
+        ``len(storage)``) and a row whose goal is not finite is drawn again, up to 8 times: no pass over the
+        rows. With a filter, or when most goals are not finite, the draw is among :meth:`member_rows`.
+
+        Args:
+            n (int): rows to draw.
+            filter (RowFilter or mapping, optional): which rows may be drawn.
+
+        Keyword Args:
+            draw (callable, optional): ``draw(count)`` -> ``count`` rows over every stored row (a TorchRL
+                sampler's draw, say).
+            generator (torch.Generator, optional): for the default draw and the draw among members.
+
+        Example:
+            >>> import torch
+            >>> from tensordict import TensorDict
+            >>> from torchrl.data import LazyTensorStorage
+            >>> from torchrl_robotmem import GoalIndex
+            >>> storage = LazyTensorStorage(10)
+            >>> goals = torch.tensor([[0.0, 0], [float("nan"), 0], [1.0, 1]])
+            >>> storage.set(range(3), TensorDict({("next", "achieved_goal"): goals}, [3]))
+            >>> rows = GoalIndex(storage).draw_rows(100, generator=torch.Generator().manual_seed(0))
+            >>> sorted(set(rows.tolist()))
+            [0, 2]
+        """
+        flt = RowFilter.coerce(filter)
+        column = live_column(self.storage, self.goal_key)
+        if column is None or len(self.storage) == 0:
+            return torch.zeros(0, dtype=torch.int64)
+        if flt.matches_all:
+            stored = len(self.storage)
+            draw = draw or (lambda count: torch.randint(stored, (count,), generator=generator))
+            rows = draw(n).to(torch.long).cpu()
+            for _ in range(8):
+                bad = ~torch.isfinite(column[rows.to(column.device)].reshape(n, -1)).all(-1).cpu()
+                if not bool(bad.any()):
+                    return rows
+                rows[bad] = draw(int(bad.sum())).to(torch.long).cpu()
+        members = self.member_rows(flt)
+        if members.numel() == 0:
+            return members
+        return members[torch.randint(members.numel(), (n,), generator=generator)]
 
     def search(
         self,
