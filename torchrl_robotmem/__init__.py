@@ -19,6 +19,7 @@ from __future__ import annotations
 from ._version import __version__
 from .envs import make_env, make_reward_fn
 from .goal_index import GoalIndex, recall
+from .her import PersistentHERReplayBuffer
 from .memory import RobotMemory
 from .proposer import GoalProposer
 from .sampler import GoalSimilaritySampler
@@ -32,6 +33,7 @@ __all__ = [
     "GoalProposer",
     "GoalSimilaritySampler",
     "OnPolicyBatchSampler",
+    "PersistentHERReplayBuffer",
     "PersistentPrioritizedSampler",
     "RecallTransform",
     "RobotMemory",

@@ -1,7 +1,8 @@
 """SAC / TD3 / DDPG + HER on Fetch and Shadow Hand, over a persistent memory.
 
 The loop of TorchRL's ``sota-implementations/sac/sac.py`` (collect, extend, update, log, evaluate). The replay
-buffer is a :class:`~torchrl.data.HERReplayBuffer` over a :class:`~torchrl_robotmem.ZarrStorage` at
+buffer is TorchRL's ``HERReplayBuffer`` (as :class:`~torchrl_robotmem.PersistentHERReplayBuffer`, which also
+samples a memory that has filled and wraps) over a :class:`~torchrl_robotmem.ZarrStorage` at
 ``memory.path``: the next run on the same path continues on it, fresh networks first learning from it
 (``pretrain.py``); ``prior=mix 'prior.paths=[...]'`` samples read-only memories beside it (``prior_memory/``).
 The agent and the run's progress are saved at every evaluation (``collector.resume=true`` continues a stopped

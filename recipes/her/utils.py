@@ -23,7 +23,6 @@ from tensordict.nn.distributions import NormalParamExtractor
 from torch import nn, optim
 from torchrl.checkpoint import Checkpoint, CheckpointError
 from torchrl.collectors import Collector
-from torchrl.data import HERReplayBuffer
 from torchrl.envs import RewardSum
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import (
@@ -37,7 +36,7 @@ from torchrl.modules.distributions import TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, SoftUpdate, TD3Loss, group_optimizers
 from torchrl.record.loggers import Logger, generate_exp_name, get_logger
 
-from torchrl_robotmem import ZarrStorage, make_env, make_reward_fn
+from torchrl_robotmem import PersistentHERReplayBuffer, ZarrStorage, make_env, make_reward_fn
 
 # gymnasium-robotics prints an Adroit reward notice to stderr on every import
 # (through farama_notifications); nothing above imports it, so drop it here.
@@ -146,8 +145,11 @@ def make_sampler(cfg: DictConfig):
     return sampler
 
 
-def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int | None = -1) -> HERReplayBuffer:
+def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int | None = -1) -> PersistentHERReplayBuffer:
     """HER over ``storage``: goals relabelled from ``("next", "achieved_goal")``.
+
+    TorchRL's ``HERReplayBuffer`` as :class:`~torchrl_robotmem.PersistentHERReplayBuffer` (which samples a
+    memory that has filled and wraps).
 
     ``batch_size`` defaults to ``optim.batch_size``; ``None`` builds a buffer that is
     only sampled with an explicit size (``PriorMix`` draws part-batches from each).
@@ -157,7 +159,7 @@ def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int |
     beside it) a ``ZarrStorage(path, read_only=True)`` of another run.
     No prefetch: the goal sampler's query changes between samples.
     """
-    return HERReplayBuffer(
+    return PersistentHERReplayBuffer(
         make_reward_fn(cfg.env.name),
         her_ratio=cfg.replay_buffer.her_ratio,
         strategy=cfg.replay_buffer.strategy,
@@ -168,7 +170,7 @@ def make_replay_buffer(cfg: DictConfig, storage, sampler=None, batch_size: int |
     )
 
 
-def make_prior_buffers(cfg: DictConfig, device: torch.device | None = None) -> list[HERReplayBuffer]:
+def make_prior_buffers(cfg: DictConfig, device: torch.device | None = None) -> list[PersistentHERReplayBuffer]:
     """One HER buffer per ``prior.paths`` entry, on a read-only :class:`~torchrl_robotmem.ZarrStorage`.
 
     They are sampled in part-batches only (``prior_memory.PriorMix``), so they have no batch size.

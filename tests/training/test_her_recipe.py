@@ -114,6 +114,14 @@ def test_resume_appends_to_the_memory(tmp_path):
     assert third["memory_rows_before"] == 75
 
 
+def test_a_memory_that_fills_and_wraps_trains_on(tmp_path):
+    """Found by a review: once the memory was full, the first HER sample after an extend raised (TorchRL
+    0.14.1's HERReplayBuffer; the recipe now builds PersistentHERReplayBuffer, docs/her.md)."""
+    s = run_recipe(tmp_path, "collector.total_frames=100", "logger.eval_iter=100", "replay_buffer.size=60",
+                   f"memory.path={tmp_path / 'mem.zarr'}")
+    assert s["frames"] == 100 and s["memory_rows_after"] == 60 and s["updates"] > 0
+
+
 def test_lazy_tensor_storage_through_the_config(tmp_path):
     s = run_recipe(
         tmp_path, "replay_buffer.storage._target_=torchrl.data.LazyTensorStorage",

@@ -1,0 +1,98 @@
+"""HER over a memory that fills and wraps: TorchRL's ``HERReplayBuffer`` with two fixes.
+
+A persistent memory fills: across runs a ring of any capacity is full sooner or
+later, and from then on every ``extend`` overwrites the oldest rows. TorchRL
+0.14.1's :class:`~torchrl.data.HERReplayBuffer` has two faults there (with
+``LazyTensorStorage`` as with :class:`~torchrl_robotmem.ZarrStorage`), which
+:class:`PersistentHERReplayBuffer` mends and nothing else:
+
+* **The first sample after an extend of a full ring raises** ``RuntimeError:
+  Boolean value of Tensor with more than one value is ambiguous``. Its episode
+  cache is keyed by ``(len, storage._last_cursor, is_full)``; once full, ``len``
+  no longer changes, so the comparison of two keys reaches ``_last_cursor``,
+  the tensor of the rows last written. Here the key holds plain ints, and the
+  storage's mutation counter, so a write of exactly ``max_size`` rows between
+  two samples also rebuilds the cache.
+* **A full ring relabels rows with another episode's goals.** The rows after its
+  last episode end, up to the ring's physical end, belong to the episode that
+  goes on at row 0; TorchRL gives them the range of the episode before, so
+  ``"final"`` and ``"episode"`` draw that episode's goals (about 7% of the rows
+  relabelled in a ring of 130 rows holding 50-step episodes), and ``"future"``
+  draws only the row's own goal. Here the ring's last row ends an episode too:
+  those rows relabel among themselves.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torchrl.data import HERReplayBuffer
+from torchrl.data.replay_buffers.storages import Storage
+
+__all__ = ["PersistentHERReplayBuffer"]
+
+
+def _last_row(cursor: Any) -> int | None:
+    """The last row of a storage's ``_last_cursor`` (an int, a slice, a range, a list or a tensor of rows)."""
+    if cursor is None:
+        return None
+    if isinstance(cursor, torch.Tensor):
+        return int(cursor.reshape(-1)[-1]) if cursor.numel() else None
+    if isinstance(cursor, slice):
+        return None if cursor.stop is None else int(cursor.stop) - 1
+    if isinstance(cursor, (range, list, tuple)):
+        return int(cursor[-1]) if len(cursor) else None
+    try:
+        return int(cursor)
+    except (TypeError, ValueError):
+        return None
+
+
+class PersistentHERReplayBuffer(HERReplayBuffer):
+    """:class:`torchrl.data.HERReplayBuffer` that samples a full, wrapping memory (see the module docstring).
+
+    Takes exactly TorchRL's arguments, and relabels exactly as it does wherever the ring is not full.
+
+    Args:
+        reward_fn (callable): the reward of a relabelled transition (e.g.
+            :func:`~torchrl_robotmem.make_reward_fn`).
+
+    Keyword Args:
+        her_ratio, strategy, end_key, goal_key, achieved_goal_key, reward_key, storage, sampler, batch_size,
+            ...: as :class:`torchrl.data.HERReplayBuffer`.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage
+        >>> from torchrl_robotmem import make_reward_fn
+        >>> from torchrl_robotmem.her import PersistentHERReplayBuffer
+        >>> rb = PersistentHERReplayBuffer(make_reward_fn("FetchReach-v4"), her_ratio=1.0, strategy="final",
+        ...                                achieved_goal_key=("next", "achieved_goal"),
+        ...                                storage=LazyTensorStorage(8), batch_size=8)
+        >>> def episode(i):  # 5 steps; every achieved goal of episode i is (i, i, i)
+        ...     done = torch.tensor([[False]] * 4 + [[True]])
+        ...     return TensorDict({"desired_goal": torch.zeros(5, 3), ("next", "achieved_goal"): torch.full((5, 3), float(i)),
+        ...                        ("next", "done"): done, ("next", "reward"): torch.zeros(5, 1)}, [5])
+        >>> for i in range(3):  # 15 steps into 8 rows: the ring is full and wraps
+        ...     _ = rb.extend(episode(i))
+        >>> batch = rb.sample()  # TorchRL 0.14.1's buffer raises here
+        >>> bool((batch["desired_goal"] == batch["next", "achieved_goal"]).all())  # each row: its own episode's goal
+        True
+    """
+
+    def _storage_cache_key(self, storage: Storage) -> tuple:
+        revision = getattr(storage, "_mutation_revision", None)
+        return (len(storage), None if revision is None else int(revision),
+                _last_row(getattr(storage, "_last_cursor", None)), bool(getattr(storage, "_is_full", False)))
+
+    def _build_episode_cache(self, storage: Storage) -> torch.Tensor:
+        ends = super()._build_episode_cache(storage)
+        n = len(storage)
+        if n and bool(getattr(storage, "_is_full", False)) and (not len(ends) or int(ends[-1]) != n - 1):
+            ends = torch.cat([ends, ends.new_tensor([n - 1])])  # the wrapping episode's rows before the wrap end here
+        return ends
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        super().load_state_dict(state_dict)
+        self._episode_ends_cache, self._last_cache_key = None, (-1,)  # rebuilt at the next sample, with this key
