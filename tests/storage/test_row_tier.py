@@ -356,3 +356,89 @@ def test_an_in_place_write_that_reopens_an_old_episode_is_sealed_open(tmp_path, 
     assert _seal(path)["open_ends"] == [9]
     with ZarrStorage(path, 100, chunk_rows=CHUNK, goal_conditioned=False) as st:  # the next writer closes it
         assert bool(st[9]["next", "done"])
+
+
+def test_an_unbounded_memory_counts_rows_written_again_as_torchrl_does_and_reopens(tmp_path):
+    """Found by a review: TorchRL adds every row a set names to len (rows written again too); the memory grew
+    only to the highest row written, so len passed the rows allocated, reads raised, and the record committed
+    made every later open refuse the store."""
+    path = str(tmp_path / "again.zarr")
+    st, reference = ZarrStorage(path, chunk_rows=CHUNK, goal_conditioned=False), LazyTensorStorage(100_000)
+    for s in (st, reference):
+        s.set(torch.arange(10), _rows(0, 10))
+    first = st.capacity  # what the first write allocated (1,024 rows)
+    for s in (st, reference):
+        for _ in range(first // 10 + 2):
+            s.set(torch.arange(10), _rows(0, 10))  # rows 0..9 again and again: len past the rows allocated
+    n = len(reference)
+    assert n > first and len(st) == n and st.capacity >= n
+    assert torch.equal(st.get(torch.arange(10))["obs"], reference.get(torch.arange(10))["obs"])
+    assert st.get(torch.arange(n)).shape == (n,)
+    st.close()
+    with ZarrStorage(path, read_only=True) as r:
+        assert len(r) == n and torch.equal(r["obs"][:10], _rows(0, 10)["obs"])
+
+
+@pytest.mark.parametrize("n", [1024, 2048])
+def test_a_state_that_fills_the_rows_of_an_unbounded_memory_appends_after_them(tmp_path, n):
+    """Found by a review: a loaded state of exactly as many rows as the memory had allocated (1,024 or 2,048
+    here) put its cursor at row 0 (the modulo of a ring), so the next write overwrote the first rows."""
+    path = str(tmp_path / "fill.zarr")
+    source = LazyTensorStorage(n)
+    source.set(torch.arange(n), _rows(0, n))
+    st = ZarrStorage(path, chunk_rows=CHUNK, goal_conditioned=False)
+    st.load_state_dict(source.state_dict())
+    rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+    rb.extend(_rows(n, n + 5))
+    assert len(st) == n + 5 and torch.equal(st["obs"], _rows(0, n + 5)["obs"])
+    st.close()
+    with ZarrStorage(path) as again:
+        TensorDictReplayBuffer(storage=again).extend(_rows(n + 5, n + 10))
+        assert torch.equal(again["obs"], _rows(0, n + 10)["obs"])
+
+
+@pytest.mark.parametrize("max_size", [None, 1000])
+def test_loads_of_an_older_checkpoint_of_the_same_store_restores_it_as_lazy_tensor_storage_does(tmp_path, max_size):
+    """Found by a review: the store kept its newer rows while TorchRL then loaded the checkpoint's writer (after
+    the storage), so the next extend overwrote rows and counted rows never written into len."""
+    path = str(tmp_path / "self.zarr")
+    buffers = {"zarr": TensorDictReplayBuffer(storage=ZarrStorage(path, max_size, chunk_rows=CHUNK,
+                                                                  goal_conditioned=False), batch_size=4),
+               "lazy": TensorDictReplayBuffer(storage=LazyTensorStorage(100_000), batch_size=4)}
+    for name, rb in buffers.items():
+        rb.extend(_rows(0, 300))
+        rb.dumps(tmp_path / f"ckpt-{name}")
+        rb.extend(_rows(300, 400))
+        rb.loads(tmp_path / f"ckpt-{name}")
+        rb.extend(_rows(1000, 1010))
+    zarr, lazy = buffers["zarr"], buffers["lazy"]
+    assert len(zarr) == len(lazy) == 310
+    assert torch.equal(zarr.storage[:]["obs"], lazy.storage[:]["obs"])
+    assert zarr.writer.state_dict() == lazy.writer.state_dict()
+    zarr.storage.close()
+    again = TensorDictReplayBuffer(storage=ZarrStorage(path, goal_conditioned=False), batch_size=4)
+    assert len(again) == 310 and int(again.writer._cursor) == 310
+    again.storage.close()
+
+
+def test_window_sampler_after_a_lazy_tensor_storage_state_is_loaded_into_a_ring(tmp_path):
+    """Found by a review: the window was placed by the store's count of rows written (the rows the load wrote),
+    not by the last row written, so after a load of a wrapped buffer it held the wrong rows, also after a
+    reopen."""
+    source = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), sampler=WindowSampler(50), batch_size=8)
+    source.extend(_rows(0, 1300))  # wrapped: rows 250..299 hold the newest, 1250..1299
+    path = str(tmp_path / "win.zarr")
+    out = {}
+    for name, storage in (("lazy", LazyTensorStorage(1000)),
+                          ("zarr", ZarrStorage(path, 1000, chunk_rows=CHUNK, goal_conditioned=False))):
+        rb = TensorDictReplayBuffer(storage=storage, sampler=WindowSampler(50), batch_size=8)
+        rb.load_state_dict(source.state_dict())
+        first = storage.get(rb.sampler.window_rows(storage))["obs"][:, 0]
+        rb.extend(_rows(5000, 5005))
+        out[name] = (first, storage.get(rb.sampler.window_rows(storage))["obs"][:, 0])
+    assert torch.equal(out["zarr"][0], out["lazy"][0]) and out["lazy"][0].tolist() == list(range(1250, 1300))
+    assert torch.equal(out["zarr"][1], out["lazy"][1]) and out["lazy"][1][-5:].tolist() == list(range(5000, 5005))
+    rb.storage.close()
+    with ZarrStorage(path, read_only=True) as reader:
+        rows = WindowSampler(50).window_rows(reader)
+        assert torch.equal(reader.get(rows)["obs"][:, 0], out["lazy"][1])

@@ -228,3 +228,21 @@ def test_a_flush_between_the_writer_s_cursor_move_and_its_set_records_the_last_w
     reference.extend(_rows(100, 10))
     assert again.storage[:]["obs"].tolist() == reference.storage[:]["obs"].tolist()  # the next batch lands at row 5
     again.storage.close()
+
+
+@pytest.mark.parametrize("max_size", [None, 1000])
+def test_rows_appended_without_a_buffer_move_the_position_the_next_buffer_gets(tmp_path, max_size):
+    """Found by a review: the record kept the last buffer's writer position after rows were appended with
+    ``storage.set`` alone, so the next buffer's writer overwrote those rows and counted unwritten ones."""
+    path = tmp_path / "m.zarr"
+    rb = TensorDictReplayBuffer(storage=_zarr(path, max_size), batch_size=2)
+    rb.extend(_rows(0, 100))
+    rb.storage.close()
+    alone = _zarr(path)
+    alone.set(torch.arange(100, 110), _rows(100, 10))
+    alone.close()
+    again = TensorDictReplayBuffer(storage=_zarr(path), batch_size=2)
+    assert _position(again) == {"_cursor": 110, "_write_count": 110}
+    again.extend(_rows(110, 5))
+    assert again.storage[:]["obs"].tolist() == list(range(115))
+    again.storage.close()

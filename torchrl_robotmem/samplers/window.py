@@ -30,15 +30,17 @@ class WindowSampler(JsonStateDumps, Sampler):
     - A storage that has not wrapped (``len(storage) < max_size``, or a memory without a capacity):
       the rows ``[len - window, len)``.
     - A full ring (``len(storage) == max_size``): the ``window`` rows that end at the last written row,
-      across the wrap. The last written row is read, in this order, from the storage's public
-      ``write_count`` (:class:`~torchrl_robotmem.ZarrStorage`: kept in the store, so it holds after a
-      reopen: row ``(write_count - 1) % max_size``), from TorchRL's ``Storage._last_cursor_index`` (set by
-      every ``TensorStorage.set``, e.g. :class:`~torchrl.data.LazyTensorStorage`, and shared with the
-      processes that write; what TorchRL's own ``SliceSampler`` reads), else from the last write this
-      sampler saw through its buffer (``extend`` / ``add``). That record is kept in the sampler's
-      ``state_dict``: TorchRL's ``rb.load_state_dict`` / ``rb.loads`` restore the rows and the writer's
-      cursor but leave ``_last_cursor_index`` unset or stale, so after a restore and until the next write
-      through the buffer the restored record places the window.
+      across the wrap. The last written row is read, in this order, from TorchRL's
+      ``Storage._last_cursor_index`` (set by every ``TensorStorage.set``, e.g.
+      :class:`~torchrl.data.LazyTensorStorage`, and shared with the processes that write; what TorchRL's
+      own ``SliceSampler`` reads; a :class:`~torchrl_robotmem.ZarrStorage` keeps it in its commit
+      record, so it holds after a reopen and a reader's ``refresh``), from the storage's public
+      ``write_count`` (a ``ZarrStorage`` reopened where no write followed a load: row
+      ``(write_count - 1) % max_size``), else from the last write this sampler saw through its buffer
+      (``extend`` / ``add``). That record is kept in the sampler's ``state_dict``: TorchRL's
+      ``rb.load_state_dict`` / ``rb.loads`` restore the rows and the writer's cursor but leave
+      ``_last_cursor_index`` unset or stale, so after a restore and until the next write through the
+      buffer the restored record places the window first.
       A full ring none of these describe is refused with a ``RuntimeError``, never sampled at random.
     - ``window >= len(storage)``: every stored row.
 
@@ -82,13 +84,15 @@ class WindowSampler(JsonStateDumps, Sampler):
     # -- where the window is --------------------------------------------------------------------
 
     def _last_row(self, storage, n: int, size: int) -> int:
-        write_count = getattr(storage, "write_count", None)  # ZarrStorage: public, kept in the store
-        if isinstance(write_count, (int, np.integer)) and not isinstance(write_count, bool) and write_count >= n:
-            return (int(write_count) - 1) % size
-        # TorchRL: every TensorStorage.set records it (shared with processes that write, e.g. a collector's);
-        # TorchRL's rb.load_state_dict / loads do not restore it: until the next write, the restored record wins
+        # TorchRL: every TensorStorage.set records it (shared with processes that write, e.g. a collector's;
+        # ZarrStorage keeps it in its record); TorchRL's rb.load_state_dict / loads do not restore it: until
+        # the next write, the restored record wins (a store's write_count counts the rows a load wrote, not
+        # where the loaded writer goes on)
         last = self._last_written if self._restored else getattr(storage, "_last_cursor_index", None)
         if last is None:
+            write_count = getattr(storage, "write_count", None)  # ZarrStorage: public, kept in the store
+            if isinstance(write_count, (int, np.integer)) and not isinstance(write_count, bool) and write_count >= n:
+                return (int(write_count) - 1) % size
             last = self._last_written
         if last is None:
             raise RuntimeError(

@@ -77,10 +77,20 @@ class ZarrCheckpointer(StorageCheckpointerBase):
         with open(pointer) as f:
             meta = json.load(f)
         if meta["store"] == storage.path:
-            # The store holds the newest state, which may be ahead of the checkpoint.
-            storage.resume_writers()
-            return
-        if not meta.get("copy"):
+            if [meta.get("len"), meta.get("write_count")] == [len(storage), storage.write_count]:
+                storage.resume_writers()  # the store is as the checkpoint left it (the writer loaded next agrees)
+                return
+            if not meta.get("copy"):
+                raise ValueError(
+                    f"This checkpoint points to the store {storage.path!r} itself, which has moved on since "
+                    f"(len {meta.get('len')} -> {len(storage)}, rows written {meta.get('write_count')} -> "
+                    f"{storage.write_count}), and holds no copy of it: its rows cannot be restored. To continue "
+                    f"from the store's newest rows, build the buffer on it without loads (the writer resumes "
+                    f"where the store stopped)."
+                )
+            # the store moved on: the checkpoint's rows come back from its copy, as TorchRL's storages restore
+            # theirs (the writer TorchRL loads next names the checkpoint's rows, not the newer ones)
+        elif not meta.get("copy"):
             raise ValueError(
                 f"This checkpoint points to the Zarr store {meta['store']!r} and holds no copy of it; "
                 f"the buffer's storage is {storage.path!r}. Build the buffer with "

@@ -334,6 +334,7 @@ class MemoryStore:
         if self.appended is not None:
             self.appended += n
         self.cursor = next_row if self.unbounded else next_row % self.mirror.max_dim0
+        self.writer_at = None  # taken again from the writer that wrote them (follow_writers); none: the store's own
 
     def follow_writers(self, storage: Any, *, record: bool = False) -> None:
         """Takes the position of the writer attached to ``storage`` (TorchRL's count) as the one to record.
@@ -367,7 +368,7 @@ class MemoryStore:
 
     def meta_snapshot(self, length: int, last: int | None) -> dict:
         """The record a commit writes, for ``length`` rows and the last written row ``last``."""
-        writer = {} if self.writer_at is None else {"writer": list(self.writer_at)}
+        writer = {"writer": None if self.writer_at is None else list(self.writer_at)}  # None replaces a stale one
         return {"len": length, "cursor": self.cursor, "last_cursor": -1 if last is None else int(last),
                 "write_count": self.write_count, "session": self.session, **writer, **self.tags.record()}
 
@@ -548,7 +549,8 @@ class MemoryStore:
 
     def load_position(self, meta: dict, rows, n0: int, tagged: bool) -> None:
         """The writer position of ``n0`` loaded rows (``meta``: the source's bookkeeping, if any)."""
-        self.cursor = int(meta.get("cursor", n0 % self.mirror.max_dim0)) % self.mirror.max_dim0
+        cursor = int(meta.get("cursor", n0))
+        self.cursor = cursor if self.unbounded else cursor % self.mirror.max_dim0  # unbounded: n0 may fill the rows
         self.write_count = int(meta.get("write_count", n0))
         self.appended = None
         if tagged:

@@ -329,8 +329,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 self._evolve_schema(data, new_paths, plan.single)
             if new_constants:
                 self._engine.update_attrs(self._schema.add_constants(new_constants))
-            if self._store.unbounded:
-                self._fit(cursor)
+            if self._store.unbounded:  # TorchRL counts every row a set names into len, even rows written again
+                self._fit(cursor, self._len_along_dim0 + n if set_cursor else 0)
             rows = cursor_rows(cursor, self._mirror.max_dim0)
             span, dirty = write_span(cursor, data, rows)
             with self._engine.cv:
@@ -343,12 +343,14 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 self._engine.mark_dirty(dirty, self._mirror.chunk_rows)
             self._engine.kick(notify=completes_chunk(rows, self._mirror.chunk_rows))
 
-    def _fit(self, cursor) -> None:
-        """A memory without a declared capacity grows (rows committed first) to hold the rows ``cursor`` writes."""
+    def _fit(self, cursor, length: int) -> None:
+        """A memory without a declared capacity grows (rows committed first) to hold the rows ``cursor`` writes,
+        and ``length`` rows (TorchRL's ``len`` after the write)."""
         need = cursor.stop if isinstance(cursor, slice) and cursor.stop is not None else None
         if need is None:
             rows = cursor_rows(cursor, self._mirror.max_dim0)
             need = int(rows.max()) + 1 if rows.numel() else 0
+        need = max(need, length)
         if need > self._mirror.max_dim0:
             self._store.flush()  # not self.flush(): inside a set, TorchRL's writer has moved past rows not written yet
             if self._store.grow_for(need):
