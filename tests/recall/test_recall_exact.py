@@ -473,6 +473,25 @@ def test_index_pickles_and_rebuilds_lazily():
         assert torch.equal(a, b)
 
 
+def test_a_huge_k_on_a_memory_without_a_capacity_is_refused(tmp_path):
+    """Found by a review: a memory without a capacity has max_size 2**50, so nothing clamped k: k = 10**9
+    raised MemoryError (or the process was killed). Its k columns stay k (a policy sizes on them); a k past
+    its rows asking for more than 2**26 results is refused, naming k and the rows."""
+    from torchrl_robotmem import ZarrStorage
+
+    storage = ZarrStorage(str(tmp_path / "grow.zarr"), goal_conditioned=False)
+    rb = TensorDictReplayBuffer(storage=storage)
+    rb.extend(_rows.fetch_rows(60, torch.Generator().manual_seed(0)))  # untagged rows (no env codes)
+    index = GoalIndex(rb)
+    queries = torch.rand(4, 3, generator=torch.Generator().manual_seed(1))
+    dist, idx, mask = index.search(queries, 100)  # past the 60 rows: 100 columns, 60 of them matches
+    assert dist.shape == (4, 100) and mask.sum(1).tolist() == [60] * 4
+    assert_exact(index, rb, queries, 60)
+    with pytest.raises(ValueError, match=r"k=1000000000 .* 60 rows"):
+        index.search(queries, 10**9)
+    storage.close()
+
+
 # -- k above the rows stored ------------------------------------------------------
 @pytest.mark.parametrize("backend", ["kdtree", "brute"])
 def test_k_far_above_the_rows_is_clamped_to_the_capacity(backend):

@@ -138,6 +138,19 @@ def test_prioritized_samples_by_priority_with_torchrls_weights(tmp_path):
     rb.storage.close()
 
 
+def test_prioritized_replay_on_a_memory_without_a_capacity_is_refused_saying_what_to_do(tmp_path):
+    """Found by a review: the table was sized by the memory's max_size (2**50 rows without a capacity), and the
+    first extend failed allocating 9e15 bytes."""
+    storage = ZarrStorage(tmp_path / "grow.zarr", goal_conditioned=False)
+    rb = TensorDictReplayBuffer(storage=storage, sampler=PersistentPrioritizedSampler(), batch_size=8)
+    with pytest.raises(ValueError, match="grows without bound.*ZarrStorage\\(path, max_size\\)"):
+        rb.extend(_rows(10))
+    assert len(storage) == 10  # TorchRL's writer stores the rows before the sampler sees them: sound rows, kept
+    with pytest.raises(ValueError, match="grows without bound"):
+        rb.sample()
+    storage.close()
+
+
 def test_new_rows_get_the_max_priority_and_draws_follow_it():
     sampler = PersistentPrioritizedSampler(alpha=1.0, beta=0.4)
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), sampler=sampler, batch_size=256)

@@ -442,3 +442,20 @@ def test_window_sampler_after_a_lazy_tensor_storage_state_is_loaded_into_a_ring(
     with ZarrStorage(path, read_only=True) as reader:
         rows = WindowSampler(50).window_rows(reader)
         assert torch.equal(reader.get(rows)["obs"][:, 0], out["lazy"][1])
+
+
+@pytest.mark.parametrize("cursor, data", [(-1, _rows(100, 101)[0]), (slice(-3, None), _rows(100, 103)),
+                                          (torch.tensor([5, -2]), _rows(100, 102))])
+def test_a_negative_index_into_a_memory_without_a_capacity_is_refused_and_changes_nothing(tmp_path, cursor, data):
+    """Found by a review: -1 named the last row allocated (a row that moves as the memory grows), len counted
+    a row of zeros, and the next buffer appended past len. Such a memory has no last row to count from."""
+    path = str(tmp_path / "neg.zarr")
+    with ZarrStorage(path, chunk_rows=CHUNK, goal_conditioned=False) as st:
+        st.set(torch.arange(40), _rows(0, 40))
+        with pytest.raises(IndexError, match="no declared capacity.*negative index"):
+            st.set(cursor, data)
+        assert len(st) == 40 and torch.equal(st["obs"], _rows(0, 40)["obs"])
+        assert torch.equal(st.get(-1)["obs"], _rows(39, 40)["obs"][0])  # reading from the end still works
+    with ZarrStorage(path) as again:
+        TensorDictReplayBuffer(storage=again).extend(_rows(40, 45))
+        assert torch.equal(again["obs"], _rows(0, 45)["obs"])

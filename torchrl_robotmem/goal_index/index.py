@@ -362,7 +362,9 @@ class GoalIndex:
             goal: ``[goal_dim]`` or ``[B, goal_dim]`` (tensor, array or list).
             k (int): number of neighbours (>= 1). Clamped to the storage's
                 capacity (``max_size``: no query can match more rows), and the
-                search itself to the rows that pass the filter.
+                search itself to the rows that pass the filter. A memory without
+                a capacity answers ``k`` columns (those past its rows masked); a
+                ``k`` past its rows that asks for more than 2**26 results is refused.
 
         Keyword Args:
             filter (RowFilter or mapping, optional): which rows may match, as
@@ -395,6 +397,10 @@ class GoalIndex:
             # given k and storage: callers size specs on it) and to the rows passing the
             # filter (the search): a k far above them allocates nothing for it
             width = min(k, int(self.storage.max_size))
+            if getattr(self.storage, "bounded", True) is False and width > len(self.storage) and Q * width > 2**26:
+                raise ValueError(  # a memory without a capacity clamps nothing: k columns are k columns
+                    f"k={k} for {Q} goal(s) asks for {Q * width:,} results from a memory without a capacity that "
+                    f"holds {len(self.storage):,} rows: ask for at most the rows stored (len(storage)).")
             kk = 0
             if width and Q and self._tracker.goal_shape is not None and self._tracker.n:
                 if flt.one_per_episode:

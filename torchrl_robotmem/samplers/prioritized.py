@@ -569,6 +569,13 @@ class PersistentPrioritizedSampler(PrioritizedSampler):
                                "Build one sampler per replay buffer.")
         if getattr(storage, "ndim", 1) != 1:
             raise ValueError(f"{type(self).__name__} supports storages with ndim=1, got ndim={storage.ndim}.")
+        if getattr(storage, "bounded", True) is False:
+            raise ValueError(
+                f"{type(self).__name__} keeps one priority a row, in a table the size of the storage's capacity, "
+                f"and {storage!r} has none (a memory without max_size grows without bound). Build the memory "
+                f"with a capacity (ZarrStorage(path, max_size)); to replay the newest rows of a growing memory, "
+                f"use WindowSampler."
+            )
         capacity = int(storage.max_size)
         if self._max_capacity is not None and self._max_capacity != capacity:
             raise ValueError(f"max_capacity={self._max_capacity} but the storage holds {capacity} rows; "

@@ -37,7 +37,7 @@ from .schema import DataKind, check_against, split_constants
 from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag, env_names_of
 
 __all__ = ["MAX_NAME_BYTES", "StoreView", "WritePlan", "check_constants", "check_key_names", "completes_chunk",
-           "cursor_rows", "is_int_cursor", "key_name_problem", "check_rows", "plan_write", "validate",
+           "counts_from_the_end", "cursor_rows", "is_int_cursor", "key_name_problem", "check_rows", "plan_write", "validate",
            "write_span"]
 
 DONE_KEY = ("next", "done")
@@ -163,6 +163,23 @@ def cursor_rows(cursor, max_size: int) -> torch.Tensor:
     else:
         rows = torch.as_tensor(cursor, dtype=torch.long).reshape(-1).cpu()
     return torch.where(rows < 0, rows + max_size, rows)
+
+
+def counts_from_the_end(cursor) -> bool:
+    """Whether ``cursor`` names a row by a negative index (or a slice bound), counted from the end of the rows.
+
+    Example:
+        >>> counts_from_the_end(-1), counts_from_the_end(slice(2, None)), counts_from_the_end(torch.tensor([3, -2]))
+        (True, False, True)
+    """
+    if isinstance(cursor, tuple):
+        return bool(cursor) and counts_from_the_end(cursor[0])
+    if isinstance(cursor, slice):
+        return any(b is not None and int(b) < 0 for b in (cursor.start, cursor.stop))
+    if is_int_cursor(cursor):
+        return int(cursor) < 0
+    rows = torch.as_tensor(list(cursor) if isinstance(cursor, range) else cursor).reshape(-1)
+    return bool(rows.numel()) and bool((rows < 0).any())
 
 
 def write_span(cursor, data, rows: torch.Tensor) -> tuple[Any, torch.Tensor | slice]:

@@ -21,7 +21,7 @@ from .arguments import check_arguments
 from .checkpointer import ZarrCheckpointer
 from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
-from .planner import StoreView, check_rows, completes_chunk, cursor_rows, plan_write, write_span
+from .planner import StoreView, check_rows, completes_chunk, counts_from_the_end, cursor_rows, plan_write, write_span
 from .schema import DataKind
 from .state import rows_of_state, source_kind, state_rows
 from .store import MemoryStore
@@ -309,6 +309,10 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         """``set``, for rows of any kind written as TensorDicts (``as_kind``) and rows that keep their tags."""
         try:
             self._store.check_writable()
+            if self._store.unbounded and counts_from_the_end(cursor):
+                raise IndexError(f"ZarrStorage at {self.path!r} has no declared capacity, so no last row for a "
+                                 f"negative index to count from (cursor {cursor!r}): name rows from 0 (len is "
+                                 f"{len(self)}).")
             view = StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags)
             plan = plan_write(view, cursor, data, set_cursor=set_cursor, as_kind=as_kind, keep_tags=keep_tags)
             if self.initialized:  # a writer's fill under way: the chunks written into are read first (a damaged
