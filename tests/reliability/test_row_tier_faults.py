@@ -428,6 +428,21 @@ def test_row_file_changed_after_its_seal_is_filled_again(tmp_path):
     _check(path, torch.arange(200), read_only=True, sealed=True)
 
 
+def test_a_folder_where_the_row_file_goes_is_a_warning_at_close_and_the_rows_are_kept(tmp_path):
+    """Found by a review: a directory planted at ``_rows/rows.bin`` made a writer's clean close raise a bare
+    ``IsADirectoryError`` (its rows were committed all the same). The close warns, naming it, and ends."""
+    path = tmp_path / "store.zarr"
+    _make_store(path, torch.arange(100))
+    rows_bin = path / "_rows" / "rows.bin"
+    rows_bin.unlink()
+    rows_bin.mkdir()
+    st = ZarrStorage(str(path), env=ENV)
+    TensorDictReplayBuffer(storage=st, batch_size=4).extend(make_rows(torch.arange(100, 150)))
+    with pytest.warns(RuntimeWarning, match="row file was not sealed.*every row is committed"):
+        st.close()
+    _check(path, torch.arange(150), read_only=True, sealed=False)
+
+
 def test_seal_of_another_store_is_not_trusted(tmp_path):
     a, b = tmp_path / "a.zarr", tmp_path / "b.zarr"
     _make_store(a, torch.arange(200))

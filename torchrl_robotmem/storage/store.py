@@ -27,7 +27,7 @@ from .handle import StoreHandle
 from .layout import PackedLayout
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
-from .rowfile import RowFile, rows_layout, url_cache_dir
+from .rowfile import ROWS_DIR, RowFile, rows_layout, url_cache_dir
 from .schema import StoreSchema, with_constants
 from .summary import summarize
 from .tags import TAG_KEYS, TagRegistry
@@ -212,7 +212,13 @@ class MemoryStore:
         with self.scanning():
             ends = self.mirror.open_episode_ends(n, self.cursor, full=n >= self.mirror.max_size, newest=self.appended)
         record = _backend.open_group(self.handle.store, read_only=True).attrs.asdict()
-        rows.seal(record, layout=self.mirror.file_layout(), open_ends=ends.tolist())
+        try:
+            rows.seal(record, layout=self.mirror.file_layout(), open_ends=ends.tolist())
+        except OSError as err:  # the rows are committed: an unsealed file is refilled from them at the next open
+            warnings.warn(f"ZarrStorage at {self.handle.path!r}: the row file was not sealed ({type(err).__name__}: "
+                          f"{err}); every row is committed, and the next open fills the row file from the chunks "
+                          f"(remove what stands in the way under {ROWS_DIR}/ for the next close to seal it).",
+                          RuntimeWarning, stacklevel=2)
 
     def open_arrays(self, attrs: dict) -> None:
         """A writer's handles on the stored arrays; starts its commit worker (after the open's reads).
