@@ -369,3 +369,61 @@ def test_a_forked_child_exits_reads_and_is_refused_writes_and_the_parent_loses_n
     assert completed == 4
     assert "torchrl_robotmem:" not in res.stderr, res.stderr  # no child reported a flush it could not make
     _check_rows(path, completed)
+
+
+def test_a_writer_collected_inside_another_store_s_zarr_io_is_closed_without_a_deadlock(tmp_path):
+    """Found in TorchRL's own test suite with ZarrStorage swapped in: a writer left in a reference cycle was
+    collected by the garbage collector while another store's open waited on Zarr's event loop, inside
+    ``concurrent.futures.wait``, which holds the lock of the future that loop must take. Its ``__del__`` closed
+    it there, and the close's own Zarr call waited on the blocked loop for ever. Made to happen exactly there:
+    a profile hook on that wait runs the collection once Zarr's loop thread is blocked on the lock. The
+    writer is closed all the same, its rows committed (before: the process hung)."""
+    first, second = tmp_path / "cycle.zarr", tmp_path / "other.zarr"
+    code = textwrap.dedent(f"""
+        import concurrent.futures._base as futures, gc, sys, threading, time, torch, weakref
+        from tensordict import TensorDict
+        from torchrl_robotmem import ZarrStorage
+        rows = TensorDict({{"obs": torch.arange(10.0)}}, [10])
+        a = ZarrStorage({str(first)!r}, 100, goal_conditioned=False, env="E")
+        a.set(torch.arange(10), rows)
+        a.flush()
+        while any(t.name.startswith("ZarrStorage-writer") for t in threading.enumerate()):
+            time.sleep(0.01)  # its commit thread goes once idle: nothing but the cycle holds the storage
+        a.cycle, gone = a, weakref.ref(a)
+        gc.disable()
+        del a
+
+        def loop_waits_on_us():  # Zarr's loop thread blocked on the lock of a future this thread holds
+            me = threading.get_ident()
+            return any(tid != me and f.f_code.co_name == "__enter__" and f.f_back is not None
+                       and f.f_back.f_code.co_filename == futures.__file__
+                       for tid, f in sys._current_frames().items())
+
+        def collect_in_the_wait(frame, event, arg):
+            if event == "call" and frame.f_code.co_filename == futures.__file__ and frame.f_code.co_name == "<genexpr>":
+                sys.setprofile(None)
+                while not loop_waits_on_us():
+                    time.sleep(0.001)
+                gc.collect()
+                print("COLLECTED", gone() is None, flush=True)
+
+        sys.setprofile(collect_in_the_wait)
+        b = ZarrStorage({str(second)!r}, 100, goal_conditioned=False, env="E")  # its open waits on Zarr's loop
+        sys.setprofile(None)
+        gc.enable()
+        b.set(torch.arange(5), rows[:5])
+        b.close()
+        print("DONE", flush=True)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:  # the deadlock: SIGTERM would wait on it too
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"the process hung (deadlock):\n{out}\n{err[-3000:]}")
+    assert proc.returncode == 0 and "COLLECTED True" in out and "DONE" in out, out + err
+    with ZarrStorage(first, read_only=True) as st:
+        assert st["obs"].tolist() == list(range(10))
+    with ZarrStorage(second, read_only=True) as st:
+        assert len(st) == 5

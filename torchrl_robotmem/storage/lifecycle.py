@@ -16,6 +16,11 @@ that make that true:
 * **SIGTERM** (what SLURM, Kubernetes and ``kill`` send): a handler installed at
   the first writable open flushes every writer and then does what the handler
   it replaced would have done (by default: terminate with SIGTERM).
+* **Finalisers**: a writer collected without ``close()`` is closed by its
+  ``__del__``; where the collection interrupted Zarr's or this package's own I/O
+  on the same thread (a garbage collection inside a commit's wait, which holds
+  the locks of the futures the commit needs), the close is handed to a closer
+  thread instead of waiting on itself (:func:`close_from_finalizer`).
 * **Critical sections**: a signal that arrives while the main thread is inside a
   storage write is handled when the write is complete, so a flush never sees a
   half-applied write. ``SIGINT`` keeps raising ``KeyboardInterrupt``, only
@@ -30,13 +35,14 @@ import atexit
 import concurrent.futures
 import concurrent.futures.thread  # noqa: F401  (see the module docstring: hook order)
 import os
+import queue
 import signal
 import sys
 import threading
 import weakref
 from typing import Any
 
-__all__ = ["register_writer", "critical", "flush_all_writers"]
+__all__ = ["register_writer", "critical", "close_from_finalizer", "flush_all_writers"]
 
 _WRITERS: weakref.WeakSet = weakref.WeakSet()
 _installed = False
@@ -47,13 +53,18 @@ _pending: list[tuple[int, Any]] = []  # signals that arrived inside a critical s
 _previous: dict[int, Any] = {}  # handlers we replaced
 
 
+_closing: queue.SimpleQueue = queue.SimpleQueue()  # writers a finaliser handed over (put() is safe there)
+_closer: threading.Thread | None = None
+
+
 def _forget_after_fork() -> None:
     """In a forked child: no writer is the child's own, and no lock or signal state is shared with the parent."""
-    global _WRITERS, _lock, _depth
+    global _WRITERS, _lock, _depth, _closing, _closer
     _WRITERS = weakref.WeakSet()
     _lock = threading.Lock()  # may have been held by another thread at the fork
     _depth = 0
     _pending.clear()
+    _closing, _closer = queue.SimpleQueue(), None
 
 
 os.register_at_fork(after_in_child=_forget_after_fork)
@@ -84,6 +95,65 @@ def flush_all_writers() -> list[tuple[str, BaseException]]:
         except BaseException as err:  # noqa: BLE001 - reported, the others still flush
             failures.append((str(getattr(storage, "path", storage)), err))
     return failures
+
+
+# -- finalisers ---------------------------------------------------------------------------
+
+_IO_MODULES = ("zarr.", "numcodecs.", "concurrent.futures", "asyncio.", "torchrl_robotmem.storage.")
+
+
+def close_from_finalizer(storage: Any, frame: Any) -> None:
+    """Closes ``storage`` for its ``__del__``; ``frame``: the code the collection interrupted.
+
+    Inline, as an explicit ``close()`` would, unless that thread is inside Zarr's or this package's storage
+    I/O: a collection can run inside a commit's wait (``concurrent.futures.wait`` holds the locks of the
+    futures Zarr's event loop must complete), where a close that commits would wait on itself for ever.
+    There the close goes to a closer thread, which runs it once this thread has moved on.
+    """
+    while frame is not None:
+        if frame.f_globals.get("__name__", "").startswith(_IO_MODULES):
+            _closing.put(storage)  # SimpleQueue.put: safe in a finaliser (it takes no lock a thread may hold)
+            _start_closer()
+            return
+        frame = frame.f_back
+    storage.close()
+
+
+def _start_closer() -> None:
+    global _closer
+    if _closer is None or not _closer.is_alive():
+        _closer = threading.Thread(target=_close_handed_over, name="robotmem-closer", daemon=True)
+        _closer.start()
+
+
+def _close_handed_over() -> None:
+    while True:
+        storage = _closing.get()
+        if storage is None:
+            return
+        try:
+            storage.close()
+        except BaseException as err:  # noqa: BLE001 - never hide a lost commit
+            _warn(f"could not close {getattr(storage, 'path', storage)!r}: {type(err).__name__}: {err}")
+        del storage
+
+
+def _finish_handed_over() -> None:
+    """At exit: the closer thread closes what it was handed, then whatever it did not take is closed here."""
+    closer = _closer
+    if closer is not None and closer.is_alive():
+        _closing.put(None)
+        closer.join()
+    while True:
+        try:
+            storage = _closing.get_nowait()
+        except queue.Empty:
+            return
+        if storage is not None:
+            try:
+                storage.close()
+            except BaseException as err:  # noqa: BLE001 - never hide a lost commit
+                _warn(f"could not close {getattr(storage, 'path', storage)!r} at exit: {type(err).__name__}: {err}")
 
 
 # CPython 3.12.0 to 3.12.2 start no thread once interpreter exit has begun, not even in the threading exit hook
@@ -121,6 +191,7 @@ def _zarr_io_without_new_threads() -> None:
 def _close_all_at_exit() -> None:
     if _NO_NEW_THREADS_AT_EXIT and len(_WRITERS):
         _zarr_io_without_new_threads()
+    _finish_handed_over()
     for storage in list(_WRITERS):
         try:
             storage.close()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -482,7 +483,10 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         try:
             store = getattr(self, "_store", None)
             if store is not None and not store.handle.closed:
-                self.close()
+                if store.read_only:
+                    self.close()  # lets go of the rows: no commit, nothing to wait on
+                else:  # inline, or on the closer thread where the collection interrupted storage I/O
+                    lifecycle.close_from_finalizer(self, sys._getframe(1))
         except Exception:  # noqa: BLE001 - never raise from a finaliser
             pass
 
