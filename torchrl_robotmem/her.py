@@ -83,14 +83,29 @@ class PersistentHERReplayBuffer(HERReplayBuffer):
 
     def _storage_cache_key(self, storage: Storage) -> tuple:
         revision = getattr(storage, "_mutation_revision", None)
-        return (len(storage), None if revision is None else int(revision),
-                _last_row(getattr(storage, "_last_cursor", None)), bool(getattr(storage, "_is_full", False)))
+        return (len(storage), None if revision is None else int(revision), self._last_written(storage),
+                bool(getattr(storage, "_is_full", False)))
+
+    def _last_written(self, storage: Storage) -> int | None:
+        """The row written last: the storage's record of it, else (after TorchRL's ``load_state_dict`` /
+        ``loads``, which restore no storage's last cursor) the row before the writer's cursor."""
+        last = _last_row(getattr(storage, "_last_cursor", None))
+        if last is None:
+            cursor = getattr(getattr(self, "_writer", None), "_cursor", None)
+            if isinstance(cursor, int) and len(storage):
+                last = (cursor - 1) % len(storage)
+        return last
 
     def _build_episode_cache(self, storage: Storage) -> torch.Tensor:
         ends = super()._build_episode_cache(storage)
         n = len(storage)
-        if n and bool(getattr(storage, "_is_full", False)) and (not len(ends) or int(ends[-1]) != n - 1):
-            ends = torch.cat([ends, ends.new_tensor([n - 1])])  # the wrapping episode's rows before the wrap end here
+        if n and bool(getattr(storage, "_is_full", False)):
+            # the newest episode ends at the row written last (an episode still open there too), and the
+            # wrapping episode's rows before the wrap end at the ring's last row
+            last = self._last_written(storage)
+            extra = sorted({r for r in (None if last is None else last % n, n - 1) if r is not None} - set(ends.tolist()))
+            if extra:
+                ends = torch.sort(torch.cat([ends, ends.new_tensor(extra)])).values
         return ends
 
     def load_state_dict(self, state_dict: dict) -> None:

@@ -99,3 +99,31 @@ def test_a_write_of_exactly_max_size_rows_between_two_samples_rebuilds_the_episo
     _check(rb)
     rb.extend(torch.cat([_episode(2, 20), _episode(3, 40)]))  # 60 rows: the same cursor, new episode bounds
     _check(rb)
+
+
+@pytest.mark.parametrize("kind", ["lazy", "zarr"])
+@pytest.mark.parametrize("restore", ["load_state_dict", "loads"])
+def test_a_restored_full_ring_whose_newest_episode_is_open_never_crosses_it(tmp_path, kind, restore):
+    """Found by a review: TorchRL's load_state_dict / loads restore no storage's last cursor, so the open
+    episode at the write cursor lost its end and relabelled with the older episode's goals behind it. The row
+    before the writer's cursor (which TorchRL restores) ends it."""
+    def ring(tag):
+        return LazyTensorStorage(130) if kind == "lazy" else ZarrStorage(
+            str(tmp_path / f"{tag}.zarr"), 130, env=ENV, goal_conditioned=False, chunk_rows=16)
+
+    source = _buffer(ring("source"), "final")
+    for ep in range(3):
+        source.extend(_episode(ep, 50))
+    source.extend(_episode(3, 50)[:20])  # 170 rows into 130: episode 3 open at row 39, episode 0's tail after it
+    restored = _buffer(ring("restored"), "final")
+    if restore == "load_state_dict":
+        restored.load_state_dict(source.state_dict())
+    else:
+        source.dumps(tmp_path / "ckpt")
+        restored.loads(tmp_path / "ckpt")
+    for strategy in ("final", "episode", "future"):
+        restored.strategy = type(restored.strategy)(strategy)
+        _check(restored)
+    for rb in (source, restored):
+        if hasattr(rb.storage, "close"):
+            rb.storage.close()
