@@ -211,8 +211,12 @@ class RobotMemory:
             done[-1] = True
             if ("next", "truncated") in episode.keys(True, True):
                 episode.get(("next", "truncated"))[-1] = True
-        self._prev = None
-        return self.buffer.extend(self._fit_schema(episode))
+        episode = self._fit_schema(episode)
+        self.storage.check_schema(episode)  # before any side effect, as save_perception
+        if self._prev is not None:  # an episode save_perception left open ends before this one starts
+            self.storage.close_episode_at(self._prev_row)
+            self._prev = None
+        return self.buffer.extend(episode)
 
     def _fit_schema(self, td: TensorDictBase) -> TensorDictBase:
         """Zero-fills keys an existing store (e.g. written by a collector) has and ``td`` lacks."""

@@ -158,6 +158,22 @@ def test_save_episode_from_a_rollout(tmp_path):
             mem.save_episode(env.rollout(4).reshape(2, 2))
 
 
+def test_save_episode_ends_the_episode_save_perception_left_open(tmp_path):
+    """Found by a review: three save_perception steps (no done) then save_episode gave the stored episode the
+    same id as the open one, so recall(one_per_episode=True) and HER took the two for one episode."""
+    env = make_env("FetchReach-v4", seed=0)
+    meta = {"achieved_goal": [0.1, 0, 0], "desired_goal": [1, 0, 0], "is_success": 0.0}
+    with RobotMemory(tmp_path / "m.zarr", max_size=100) as mem:
+        for _ in range(3):
+            mem.save_perception(np.zeros(10), np.zeros(4), -1.0, meta)
+        with pytest.raises(TypeError, match="batch size"):  # refused: the open episode stays open
+            mem.save_episode(env.rollout(4).reshape(2, 2))
+        assert not bool(mem.storage["next", "done"][2])
+        mem.save_episode(env.rollout(5))
+        assert mem.storage["episode"][:8].tolist() == [0, 0, 0, 1, 1, 1, 1, 1]
+        assert mem.storage["next", "done"][:8].reshape(-1).tolist() == [False, False, True] + [False] * 4 + [True]
+
+
 def test_notebook_cell_run_twice(tmp_path):
     """`mem = RobotMemory(path)` run again while the first memory (and its index) is alive."""
     meta = {"achieved_goal": [0.1, 0, 0], "desired_goal": [1, 0, 0], "is_success": 0.0}
