@@ -197,6 +197,28 @@ def test_npz_round_trip_is_bit_exact(tmp_path):
     st.close()
 
 
+def test_npz_round_trip_of_a_memory_without_a_capacity_grows_again(tmp_path):
+    """Found by a review: the export recorded the growing memory's stand-in max_size (2**50 rows), so the
+    import refused it ("131.0 PiB of RAM") or, empty, built a ring of 2**50 rows whose first write failed."""
+    src = str(tmp_path / "grow.zarr")
+    with ZarrStorage(src, chunk_rows=64, env="FetchReach-v4") as st:
+        TensorDictReplayBuffer(storage=st).extend(make_transitions(1500))  # grown past its first 1,024 rows
+    for name, rows in (("some", 1500), ("none", 0)):
+        source = src if rows else str(tmp_path / "empty.zarr")
+        if not rows:
+            ZarrStorage(source).close()
+        npz, copy = str(tmp_path / f"{name}.npz"), str(tmp_path / f"{name}-copy.zarr")
+        assert main(["export", source, npz]) == 0
+        assert json.loads(str(np.load(npz, allow_pickle=False)["__robotmem__"]))["max_size"] is None
+        assert main(["import", npz, copy]) == 0
+        with ZarrStorage(copy) as st:
+            assert not st.bounded and len(st) == rows
+            TensorDictReplayBuffer(storage=st).extend(make_transitions(1000, rows))  # it grows on
+            assert len(st) == rows + 1000
+            if rows:
+                np.testing.assert_array_equal(st["observation"].numpy(), make_transitions(2500)["observation"].numpy())
+
+
 def test_minari_round_trip_same_episodes(memory, tmp_path, monkeypatch):
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "elsewhere"))
     out = str(tmp_path / "exports" / "fetch-v0")

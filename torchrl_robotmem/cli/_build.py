@@ -214,7 +214,7 @@ def atomic_target(path: str, *, inner: str | None = None) -> Iterator[str]:
 
 
 @contextlib.contextmanager
-def new_store(path: str, capacity: int, **kwargs) -> Iterator[ZarrStorage]:
+def new_store(path: str, capacity: int | None, **kwargs) -> Iterator[ZarrStorage]:
     """A new store for an import, built beside ``path`` and renamed to it once closed (see :func:`atomic_target`).
 
     If the import fails, or is killed, nothing is at ``path``. A store URL is
@@ -222,7 +222,7 @@ def new_store(path: str, capacity: int, **kwargs) -> Iterator[ZarrStorage]:
 
     Args:
         path (str): the memory to create.
-        capacity (int): its ``max_size``.
+        capacity (int or None): its ``max_size`` (``None``: a memory without a declared capacity).
         **kwargs: passed to :class:`~torchrl_robotmem.ZarrStorage` (``ndim``, ``background``, ...).
 
     Example:

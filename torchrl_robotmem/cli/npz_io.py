@@ -83,7 +83,7 @@ def export_npz(path: Any, out: str) -> dict[str, Any]:
             "env_names": list(storage.env_names),
             "kind": attrs.get("kind"),
             "ndim": int(attrs.get("ndim", 1)),
-            "max_size": int(storage.max_size),
+            "max_size": int(storage.max_size) if storage.bounded else None,  # None: a memory that grows
             "rows": len(storage),
             "schema": schema,
         }
@@ -191,9 +191,16 @@ def _read_export(src: str, *, max_size: int | None = None,
     return arrays, meta, capacity
 
 
-def _capacity(src: str, meta: dict[str, Any], members: dict, max_size: int | None, keep_float64: bool) -> int:
-    """The new memory's ``max_size``, checked: the arrays read and its RAM mirror fit in the memory left."""
+def _capacity(src: str, meta: dict[str, Any], members: dict, max_size: int | None, keep_float64: bool) -> int | None:
+    """The new memory's ``max_size``, checked: the arrays read and its RAM mirror fit in the memory left.
+
+    ``None``: the export is of a memory without a declared capacity (its record says ``max_size: null``),
+    and the import grows as it did.
+    """
     rows = meta["rows"]
+    if not max_size and "max_size" in meta and meta["max_size"] is None:
+        check_fits(members, src, 0, rows, "")
+        return None
     capacity = int(max_size) if max_size else as_count(meta.get("max_size") or rows, src, "max_size")
     if capacity < rows:
         raise CLIError(f"--max-size {capacity} is smaller than the {rows} rows in {src!r}")
