@@ -357,6 +357,14 @@ def test_copy_local_and_refusals(small_memory, tmp_path, capsys):
     assert "the same bytes as the source" in capsys.readouterr().out
     assert (tmp_path / "z.zip").read_bytes() == (tmp_path / "z2.zip").read_bytes()
     assert not (tmp_path / "x.zarr").exists()
+    # between the layouts (a review found both failing with misleading errors, one saying to run it again)
+    capsys.readouterr()
+    assert main(["copy", str(tmp_path / "z.zip"), str(tmp_path / "d.zarr")]) == 2
+    assert "copy to a path ending in .zip" in capsys.readouterr().err
+    assert main(["copy", str(small_memory), str(tmp_path / "d.zip")]) == 2
+    assert "copy to a path not ending in .zip" in capsys.readouterr().err
+    assert not (tmp_path / "d.zarr").exists() and not (tmp_path / "d.zip").exists()
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".d.")]  # no build left beside them either
     # import of a memory says to copy it
     assert main(["import", str(small_memory), str(tmp_path / "new.zarr")]) == 2
     err = capsys.readouterr().err

@@ -157,6 +157,12 @@ def copy_memory(src: Any, dst: str) -> dict[str, Any]:
     if is_local(src) and os.path.isdir(src_root):  # checked at the open too: this is the listing the copy follows
         refuse_links(src_root, s)
     files = _files(src_fs, src_root)
+    if (files == [""]) != str(dst).rstrip("/").endswith(".zip"):  # the files are copied as they are
+        raise CLIError(f"copy keeps a memory's layout, and {src!r} is "
+                       f"{'a single *.zip file' if files == [''] else 'a directory of files'} while {dst!r} "
+                       f"{'is not' if files == [''] else 'is'} a *.zip path: copy "
+                       f"{'to a path ending in .zip' if files == [''] else 'to a path not ending in .zip'}. Nothing "
+                       f"was copied.")
     record = src_fs.cat_file(_join(src_root, files[-1]))
     if is_local(dst):
         with atomic_target(dst) as tmp:
