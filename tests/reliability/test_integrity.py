@@ -160,6 +160,9 @@ def test_damage_detected_refused_verified_repaired(store, kind):
             assert torch.equal(s[key][:intact], column[:intact]), key
         if kind.endswith("group_json"):
             assert s.env_names == ("unknown-env-0",)  # names are lost; codes keep their rows
+            # rebuilt as a ring of the arrays' length, in the ring's format (1), and the report says so
+            assert s.bounded and s.record()["torchrl_robotmem"]["format_version"] == 1
+            assert any("as a ring of 1,000 rows, the arrays' length" in a for a in result.actions), result.actions
     with ZarrStorage(path) as s:  # writable again
         s.set(slice(intact, intact + 20), _rows(20, intact))
         assert len(s) == intact + 20

@@ -30,7 +30,7 @@ from zarr.storage import MemoryStore
 from ..._version import __version__
 from .. import _backend
 from ..errors import IntegrityError, NotAMemoryError, Problem
-from ..format import FORMAT_MARKER, FORMAT_VERSION, MARKER, decode_chunks, dims
+from ..format import BOUNDED_FORMAT, FORMAT_MARKER, MARKER, decode_chunks, dims
 from ..schema import DataKind
 from .arrays import check_arrays
 from .chunks import list_keys, present_chunks
@@ -131,7 +131,7 @@ def rebuild_attrs(store, local_dir) -> dict:
     kind = {"kind": "tensordict"} if "episode" in arrays else ({"kind": "tensor"} if "_tensor" in arrays else None)
     schema = {p: {"dtype": str(np.dtype(a.dtype)), "shape": list(a.shape[1 + len(inner):])} for p, a in arrays.items()}
     strict = all(any(type(c).__name__ == "Crc32cCodec" for c in a.metadata.codecs) for a in arrays.values())
-    marker = {"format_version": FORMAT_VERSION, "library_version": __version__,
+    marker = {"format_version": BOUNDED_FORMAT, "library_version": __version__,  # a ring (see repair.commit_record)
               "rebuilt_by": "robotmem repair"}
     if strict:
         marker["integrity"] = dict(MARKER)

@@ -315,8 +315,11 @@ class _Mend:
         attrs, problem = read_group_attrs(self.store)
         if attrs is not None:
             return attrs, False
-        self.actions.append(f"rebuilt the commit record (group zarr.json) from the arrays: {problem.what}")
-        return rebuild_attrs(self.store, self.local_dir), True
+        attrs = rebuild_attrs(self.store, self.local_dir)
+        self.actions.append(f"rebuilt the commit record (group zarr.json) from the arrays: {problem.what}; as a ring "
+                            f"of {attrs['max_size']:,} rows, the arrays' length (the record alone said whether the "
+                            f"memory had a declared capacity: one that had none now wraps at that length)")
+        return attrs, True
 
     def replay(self, journal: dict) -> dict:
         """Redoes the pending journal's overwrite; the attributes it led to."""
