@@ -23,29 +23,11 @@ later, and from then on every ``extend`` overwrites the oldest rows. TorchRL
 """
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from torchrl.data import HERReplayBuffer
 from torchrl.data.replay_buffers.storages import Storage
 
 __all__ = ["PersistentHERReplayBuffer"]
-
-
-def _last_row(cursor: Any) -> int | None:
-    """The last row of a storage's ``_last_cursor`` (an int, a slice, a range, a list or a tensor of rows)."""
-    if cursor is None:
-        return None
-    if isinstance(cursor, torch.Tensor):
-        return int(cursor.reshape(-1)[-1]) if cursor.numel() else None
-    if isinstance(cursor, slice):
-        return None if cursor.stop is None else int(cursor.stop) - 1
-    if isinstance(cursor, (range, list, tuple)):
-        return int(cursor[-1]) if len(cursor) else None
-    try:
-        return int(cursor)
-    except (TypeError, ValueError):
-        return None
 
 
 class PersistentHERReplayBuffer(HERReplayBuffer):
@@ -89,8 +71,10 @@ class PersistentHERReplayBuffer(HERReplayBuffer):
     def _last_written(self, storage: Storage) -> int | None:
         """The row written last: the storage's record of it, else (after TorchRL's ``load_state_dict`` /
         ``loads``, which restore no storage's last cursor) the row before the writer's cursor."""
-        last = _last_row(getattr(storage, "_last_cursor", None))
-        if last is None:
+        last = getattr(storage, "_last_cursor_index", None)  # TorchRL's own reading of the last cursor: an int
+        if last is not None:
+            last = int(last)
+        else:
             cursor = getattr(getattr(self, "_writer", None), "_cursor", None)
             if isinstance(cursor, int) and len(storage):
                 last = (cursor - 1) % len(storage)
