@@ -221,6 +221,44 @@ def test_a_bounded_memory_keeps_its_ring_and_format_1(tmp_path):
         assert torch.equal(st["obs"][:CHUNK], _rows(2 * CHUNK, 3 * CHUNK)["obs"])
 
 
+@pytest.mark.parametrize("arrays_say_so", [True, False], ids=["arrays-say-so", "older-arrays"])
+def test_repair_of_a_lost_record_keeps_a_memory_without_a_capacity_growing(tmp_path, arrays_say_so):
+    """The record (group ``zarr.json``) of a grown memory lost: its arrays say it had no capacity, and the
+    rebuilt memory grows again; arrays of an older version, which do not, come back as a ring, as the report says."""
+    path = str(tmp_path / "u.zarr")
+    n = 5 * CHUNK + 10  # grown past its first chunk, not to a whole number of chunks
+    with ZarrStorage(path, chunk_rows=CHUNK, goal_conditioned=False) as st:
+        st.set(torch.arange(n), _rows(0, n))
+        allocated = st.capacity
+    assert allocated > n
+    for node in ("obs", "action", "next/done", "episode", "run", "env"):
+        meta_path = os.path.join(path, node, "zarr.json")
+        with open(meta_path) as f:
+            meta = json.load(f)
+        assert meta["attributes"] == {"unbounded": True}, node
+        if not arrays_say_so:  # as the arrays of stores written before they said so
+            meta["attributes"] = {}
+            with open(meta_path, "w") as f:
+                json.dump(meta, f)
+    os.remove(os.path.join(path, "zarr.json"))
+    result = repair(path)
+    assert result.ok and result.after.ok
+    (action,) = [a for a in result.actions if a.startswith("rebuilt the commit record")]
+    with ZarrStorage(path) as st:
+        assert len(st) == n and torch.equal(st["obs"], _rows(0, n)["obs"])
+        assert st.bounded is not arrays_say_so
+        assert st.record()["torchrl_robotmem"]["format_version"] == (2 if arrays_say_so else 1)
+        TensorDictReplayBuffer(storage=st).extend(_rows(n, allocated + CHUNK))  # past the rows allocated
+        if arrays_say_so:
+            assert "as a memory without a declared capacity" in action, action
+            assert len(st) == allocated + CHUNK and torch.equal(st["obs"], _rows(0, allocated + CHUNK)["obs"])
+        else:
+            assert f"as a ring of {allocated:,} rows" in action, action
+            assert len(st) == allocated  # wrapped: the first rows overwritten, as the report warned
+            assert torch.equal(st["obs"][:CHUNK], _rows(allocated, allocated + CHUNK)["obs"])
+    assert verify(path).ok
+
+
 def test_window_sampler_reads_the_newest_rows_of_a_growing_memory(tmp_path):
     torch.manual_seed(0)
     st = ZarrStorage(str(tmp_path / "w.zarr"), chunk_rows=CHUNK, goal_conditioned=False)

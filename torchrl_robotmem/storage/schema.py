@@ -53,7 +53,7 @@ from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, tr
 
 from . import _backend
 from .context import user_stacklevel
-from .format import ARRAY_CONFIG, write_zero_chunks
+from .format import ARRAY_CONFIG, UNBOUNDED, write_zero_chunks
 from .layout import PackedLayout
 from .tags import TAG_KEYS
 
@@ -325,7 +325,7 @@ def default_chunk_rows(row_bytes: int, max_dim0: int) -> int:
 
 
 def create_arrays(group: Any, schema: dict[str, dict], *, rows: int, inner_shape: tuple, chunk_rows: int,
-                  compressor: str | None, level: int) -> dict[str, Any]:
+                  compressor: str | None, level: int, unbounded: bool = False) -> dict[str, Any]:
     """Creates (replacing) one Zarr array per column of ``schema``; returns them by path.
 
     Every chunk is written, an all-zero one too (:data:`~.format.ARRAY_CONFIG`): a
@@ -341,15 +341,19 @@ def create_arrays(group: Any, schema: dict[str, dict], *, rows: int, inner_shape
         chunk_rows (int): rows per chunk.
         compressor (str, optional): ``"blosc"``, ``"zstd"`` or ``None``.
         level (int): codec level.
+        unbounded (bool): the memory has no declared capacity. Each array then says so in its own
+            attributes (``{"unbounded": true}``), beside the commit record's flag: ``robotmem repair``
+            reads it when the record is lost, so a rebuilt memory grows again instead of wrapping.
     """
     out = {}
+    attributes = {UNBOUNDED: True} if unbounded else None
     for path, spec in schema.items():
         dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
         shape = (rows, *inner_shape, *spec["shape"])
         out[path] = group.create_array(
             path, shape=shape, chunks=(chunk_rows, *shape[1:]), dtype=dtype,
             compressors=_backend.make_compressors(compressor, level, dtype.itemsize),
-            fill_value=0, overwrite=True, config=ARRAY_CONFIG,
+            fill_value=0, overwrite=True, config=ARRAY_CONFIG, attributes=attributes,
         )
     return out
 
@@ -451,7 +455,8 @@ class StoreSchema:
     def _create_arrays(self, schema: dict[str, dict], *, filled: int | None) -> None:
         m = self.mirror
         arrays = create_arrays(self.handle.group, schema, rows=m.max_dim0, inner_shape=m.inner_shape,
-                               chunk_rows=m.chunk_rows, compressor=self.compressor, level=self.level)
+                               chunk_rows=m.chunk_rows, compressor=self.compressor, level=self.level,
+                               unbounded=m.unbounded)
         self.arrays.update(arrays)
         if filled is not None:  # keys added later: their older rows are zeros, in chunk files
             for arr in arrays.values():

@@ -30,7 +30,7 @@ from zarr.storage import MemoryStore
 from ..._version import __version__
 from .. import _backend
 from ..errors import IntegrityError, NotAMemoryError, Problem
-from ..format import BOUNDED_FORMAT, FORMAT_MARKER, MARKER, decode_chunks, dims
+from ..format import BOUNDED_FORMAT, FORMAT_MARKER, FORMAT_VERSION, MARKER, UNBOUNDED, decode_chunks, dims
 from ..schema import DataKind
 from .arrays import check_arrays
 from .chunks import list_keys, present_chunks
@@ -131,14 +131,18 @@ def rebuild_attrs(store, local_dir) -> dict:
     kind = {"kind": "tensordict"} if "episode" in arrays else ({"kind": "tensor"} if "_tensor" in arrays else None)
     schema = {p: {"dtype": str(np.dtype(a.dtype)), "shape": list(a.shape[1 + len(inner):])} for p, a in arrays.items()}
     strict = all(any(type(c).__name__ == "Crc32cCodec" for c in a.metadata.codecs) for a in arrays.values())
-    marker = {"format_version": BOUNDED_FORMAT, "library_version": __version__,  # a ring (see repair.commit_record)
+    # a memory without a declared capacity says so in its arrays' attributes too (schema.create_arrays); one whose
+    # arrays do not (written before they did) said it in the record alone: it comes back as a ring of their length
+    unbounded = not inner and any(a.attrs.get(UNBOUNDED) is True for a in arrays.values())
+    marker = {"format_version": FORMAT_VERSION if unbounded else BOUNDED_FORMAT, "library_version": __version__,
               "rebuilt_by": "robotmem repair"}
     if strict:
         marker["integrity"] = dict(MARKER)
     return {FORMAT_MARKER: marker, "max_size": int(min(a.shape[0] for a in arrays.values())),
             "ndim": 1, "inner_shape": inner, "chunk_rows": int(ref.metadata.chunk_grid.chunk_shape[0]),
             "schema": schema, "kind": kind, "len": 0, "cursor": 0, "last_cursor": -1, "write_count": 0,
-            "episode_next": 0, "runs": 0, "env_names": [], "env": None, "journal": None}
+            "episode_next": 0, "runs": 0, "env_names": [], "env": None, "journal": None,
+            **({UNBOUNDED: True} if unbounded else {})}
 
 
 def rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | None:

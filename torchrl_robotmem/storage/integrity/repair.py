@@ -28,7 +28,7 @@ import zarr
 
 from .. import _backend
 from ..errors import IntegrityError, LinkError, Problem
-from ..format import BACKUP_DIR, FORMAT_MARKER, dims, numel, writing_config
+from ..format import BACKUP_DIR, FORMAT_MARKER, UNBOUNDED, dims, numel, writing_config
 from ..journal import replay_journal
 from ..rowfile import remove_rows
 from .arrays import disagreement
@@ -316,9 +316,13 @@ class _Mend:
         if attrs is not None:
             return attrs, False
         attrs = rebuild_attrs(self.store, self.local_dir)
-        self.actions.append(f"rebuilt the commit record (group zarr.json) from the arrays: {problem.what}; as a ring "
-                            f"of {attrs['max_size']:,} rows, the arrays' length (the record alone said whether the "
-                            f"memory had a declared capacity: one that had none now wraps at that length)")
+        if attrs.get(UNBOUNDED):
+            shape = (f"as a memory without a declared capacity (its arrays say so), {attrs['max_size']:,} rows "
+                     f"allocated: it grows again as rows arrive")
+        else:
+            shape = (f"as a ring of {attrs['max_size']:,} rows, the arrays' length (a memory without a declared "
+                     f"capacity written before its arrays recorded it now wraps at that length)")
+        self.actions.append(f"rebuilt the commit record (group zarr.json) from the arrays: {problem.what}; {shape}")
         return attrs, True
 
     def replay(self, journal: dict) -> dict:
@@ -398,12 +402,14 @@ class _Mend:
         """The length, cursors, counters and tag tables to commit with ``n_dim0`` rows along dim 0."""
         max_dim0 = dims(new)[0]
         length = n_dim0 * numel(new)
-        full = n_dim0 >= max_dim0
+        unbounded = bool(new.get(UNBOUNDED))  # never wraps: its cursor is its length, even at the rows allocated
+        full = n_dim0 >= max_dim0 and not unbounded
         old_count = attrs.get("write_count") if is_int(attrs.get("write_count")) and "write_count" not in bad else None
         changes: dict[str, Any] = {}
         if length != attrs.get("len") or rebuilt or {"cursor", "last_cursor"} & bad:
             cursor = ring_cursor(self.store, new, max_dim0) if full else n_dim0
-            changes.update(len=length, cursor=cursor % max_dim0, last_cursor=(cursor - 1) % max_dim0 if length else -1)
+            wrap = (lambda i: i) if unbounded else (lambda i: i % max_dim0)
+            changes.update(len=length, cursor=wrap(cursor), last_cursor=wrap(cursor - 1) if length else -1)
         if length != attrs.get("len") or rebuilt or old_count is None:
             # a ring that stays full keeps its count (it has wrapped); otherwise the count is the length
             changes["write_count"] = max(length, old_count or 0) if full else length
