@@ -269,8 +269,8 @@ def make_env(
         transforms (sequence of Transform, optional): extra transforms appended
             after the standard ones, e.g. a recall transform. Default: none.
         **gym_kwargs: forwarded to ``gymnasium.make`` through
-            :class:`~torchrl.envs.GymEnv` (e.g. ``reward_type="dense"``,
-            ``distance_threshold=0.02``).
+            :class:`~torchrl.envs.GymEnv` (e.g. ``reward_type="dense"``; the Fetch
+            and Hand ids set their own ``distance_threshold`` and refuse it here).
 
     Returns:
         A :class:`~torchrl.envs.TransformedEnv`. Its ``env_id`` attribute
@@ -338,7 +338,7 @@ class GoalRewardFn:
         desired_goal_key (NestedKey): goal being pursued (the one HER
             relabels). Default: ``"desired_goal"``.
         **gym_kwargs: forwarded to ``gymnasium.make``; use the same ones as
-            for :func:`make_env` (e.g. ``distance_threshold``).
+            for :func:`make_env` (e.g. ``reward_type="dense"``).
 
     Example:
         >>> import torch

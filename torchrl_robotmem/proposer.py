@@ -84,9 +84,11 @@ class GoalProposer(Transform):
     on a learned value; here the memory counts). Where no candidate of a proposal qualifies, those
     reached in the most episodes compete (then the lowest density among them).
 
-    Until the memory holds ``warmup_rows`` rows, and in the other episodes, the env's own goal is kept.
-    The episode's ``desired_goal``, ``("next", "desired_goal")``, ``("next", "reward")`` and
-    ``("next", "is_success")`` are rewritten for the goal pursued at every step. Put it on the
+    Until the memory holds ``warmup_rows`` rows, and in the other episodes, the env's own goal is kept,
+    and its steps pass through untouched. In an episode pursuing a proposed goal, its ``desired_goal``,
+    ``("next", "desired_goal")``, ``("next", "reward")`` and ``("next", "is_success")`` are rewritten
+    for that goal at every step, with the task's ``compute_reward`` built with ``gym_kwargs`` (the
+    keyword arguments the env was made with, such as ``reward_type="dense"``). Put it on the
     training env only (evaluation keeps the env's goals), *outside* a batched env, and before any
     transform that reads ``desired_goal``, such as :class:`~torchrl_robotmem.RecallTransform` (a
     later transform sees the proposed goal).
@@ -127,6 +129,9 @@ class GoalProposer(Transform):
             task comparing rotations has none, and needs one given).
         seed (int, optional): seeds the transform's own generator (candidate draws and the ``rate``
             coin). Default: ``None`` (drawn from torch's global generator at the first proposal).
+        gym_kwargs (mapping, optional): the keyword arguments the env was made with
+            (``make_env(env, reward_type="dense")`` -> ``{"reward_type": "dense"}``), so that the rewards of
+            a proposed goal are the env's own kind. Default: none (the id's defaults: sparse rewards).
 
     Example:
         >>> from torchrl_robotmem import GoalProposer
@@ -161,6 +166,7 @@ class GoalProposer(Transform):
         reached_in: int = 0,
         reach_radius: float | None = None,
         seed: int | None = None,
+        gym_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         for name, value, low in (("num_candidates", num_candidates, 1), ("k", k, 1), ("warmup_rows", warmup_rows, 0),
                                  ("reached_in", reached_in, 0)):
@@ -176,6 +182,9 @@ class GoalProposer(Transform):
             raise ValueError(f"candidates must be one of {CANDIDATES}, got {candidates!r}.")
         if not isinstance(env, str) or not env:
             raise TypeError(f"env must be the task's id (e.g. 'FetchPickAndPlace-v4'), got {env!r}.")
+        if gym_kwargs is not None and not (isinstance(gym_kwargs, Mapping) and all(isinstance(k, str) for k in gym_kwargs)):
+            raise TypeError(f"gym_kwargs must be a mapping of keyword names to values (e.g. {{'reward_type': 'dense'}}), "
+                            f"got {gym_kwargs!r}.")
         in_key, achieved_key = unravel_key(in_key), unravel_key(achieved_key)
         self._source = MemorySource(memory, None)
         self._metric_obj = get_metric(metric)
@@ -191,7 +200,8 @@ class GoalProposer(Transform):
         self.reached_in = reached_in
         self._reach_radius = None if reach_radius is None else float(reach_radius)
         self.seed = seed
-        self._reward = GoalRewardFn(env, achieved_goal_key=achieved_key, desired_goal_key=in_key)
+        self.gym_kwargs = dict(gym_kwargs or {})
+        self._reward = GoalRewardFn(env, achieved_goal_key=achieved_key, desired_goal_key=in_key, **self.gym_kwargs)
         if reached_in and reach_radius is None and not self._reward.distance_based:
             raise ValueError(f"reached_in={reached_in}: {env} has no success distance between goals (its goals are "
                              f"compared as rotations); give reach_radius= to count the episodes that reached a "
@@ -199,6 +209,7 @@ class GoalProposer(Transform):
         self._generator: torch.Generator | None = None
         self._index: GoalIndex | None = None
         self._goals: torch.Tensor | None = None  # the goal each env pursues, [*B, goal_dim]
+        self._replaced: torch.Tensor | None = None  # which envs pursue a proposed goal, flat bool [prod(B)]
         self.proposed = 0  # episodes that pursued a proposed goal
         self.kept = 0  # episodes that kept the env's own goal
         self.seconds = 0.0  # wall time spent choosing goals (candidates, density search)
@@ -317,21 +328,26 @@ class GoalProposer(Transform):
         batch = goals.shape[:-1]
         flat = goals.reshape(-1, goals.shape[-1])
         reset = self._reset_rows(tensordict, batch)
+        replaced = torch.zeros(flat.shape[0], dtype=torch.bool)
         if self._goals is not None and self._goals.shape == goals.shape and reset is not None:
             kept = self._goals.reshape(-1, goals.shape[-1])
             flat = torch.where(reset.unsqueeze(-1), flat, kept)  # running envs keep the goal they pursue
+            replaced = self._replaced & ~reset
         rows = torch.arange(flat.shape[0]) if reset is None else reset.nonzero().squeeze(-1)
         if rows.numel():
             coin = torch.rand(rows.numel(), generator=self._rng()) < self.rate
             chosen = rows[coin]
             proposed = self.propose(chosen.numel(), near=flat[chosen])
             if proposed is not None:
+                self._check_goal_dim(flat.shape[-1], proposed.shape[-1])
                 flat[chosen] = proposed.to(flat.dtype)
+                replaced[chosen] = True
                 self.proposed += chosen.numel()
                 self.kept += rows.numel() - chosen.numel()
             else:
                 self.kept += rows.numel()
         self._goals = flat.reshape(goals.shape)
+        self._replaced = replaced
         tensordict_reset.set(self.in_keys[0], self._goals.clone())
         return tensordict_reset
 
@@ -343,15 +359,40 @@ class GoalProposer(Transform):
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self._goals is None or self._goals.shape != next_tensordict.get(self.in_keys[0]).shape:
             self._goals = next_tensordict.get(self.in_keys[0]).clone()  # stepped without a reset through it
+            self._replaced = torch.zeros(self._goals[..., 0].numel(), dtype=torch.bool)
             return next_tensordict
+        if not bool(self._replaced.any()):  # every env pursues its own goal: its step stands as it is
+            return next_tensordict
+        batch = self._goals.shape[:-1]
+        replaced = self._replaced.reshape(batch)
         next_tensordict.set(self.in_keys[0], self._goals.clone())
-        reward = next_tensordict.get(self.reward_key)
-        next_tensordict.set(self.reward_key, self._reward(next_tensordict).reshape(reward.shape).to(reward.dtype))
-        success = next_tensordict.get(self.success_key, None)
-        if success is not None:
-            next_tensordict.set(self.success_key, self._reward.success(next_tensordict).reshape(success.shape)
-                                .to(success.dtype))
+        for key, recompute in ((self.reward_key, self._reward), (self.success_key, self._reward.success)):
+            value = next_tensordict.get(key) if key == self.reward_key else next_tensordict.get(key, None)
+            if value is None:  # an env without a success flag
+                continue
+            new = recompute(next_tensordict).reshape(value.shape).to(value.dtype)
+            mask = replaced.reshape(tuple(batch) + (1,) * (value.dim() - len(batch)))
+            next_tensordict.set(key, torch.where(mask, new, value))  # envs on their own goal keep the env's
         return next_tensordict
+
+    def transform_observation_spec(self, observation_spec):
+        """Checks, once the env's goal spec is known, that the memory's goals have its size (if it has rows)."""
+        in_key = self.in_keys[0]
+        column = self._source.column(self.goal_key)
+        if in_key in observation_spec.keys(True, True) and column is not None:
+            shape = observation_spec[in_key].shape
+            batch = self.parent.batch_size if self.parent is not None else torch.Size([])
+            env_dim = int(shape[-1]) if len(shape) > len(batch) else 1
+            stored = int(torch.Size(column.shape[1:]).numel())
+            self._check_goal_dim(env_dim, stored)
+        return observation_spec
+
+    def _check_goal_dim(self, env_dim: int, stored: int) -> None:
+        if env_dim != stored:
+            raise ValueError(
+                f"GoalProposer: the env's {self.in_keys[0]!r} has {env_dim} dimensions but the memory's goals "
+                f"{self.goal_key!r} have {stored}: propose from a memory of this task (or give goal_key= the "
+                f"stored column of this env's achieved goals).")
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise RuntimeError("GoalProposer acts on an env's resets and steps; it has no meaning on stored rows.")
@@ -362,6 +403,7 @@ class GoalProposer(Transform):
         state = super().__getstate__()
         state["_index"] = None
         state["_goals"] = None
+        state["_replaced"] = None
         state["_generator"] = None
         return state
 

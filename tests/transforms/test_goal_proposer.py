@@ -196,6 +196,63 @@ def test_no_proposal_below_warmup_and_rate_zero_keeps_the_env_goals(clustered):
     assert torch.equal(env.reset()["desired_goal"], plain.reset()["desired_goal"])
 
 
+def test_kept_goals_keep_the_env_s_own_rewards_and_proposed_ones_get_the_env_s_kind(clustered):
+    """An episode on the env's own goal passes through untouched (a dense-reward env keeps its dense rewards);
+    one on a proposed goal is rewarded by the task's compute_reward built with the env's gym_kwargs."""
+    path, _ = clustered
+    torch.manual_seed(0)  # the rollouts' random actions
+    plain = make_env(ENV, seed=5, reward_type="dense").rollout(5)
+    torch.manual_seed(0)
+    kept = make_env(ENV, seed=5, reward_type="dense",
+                    transforms=[GoalProposer(path, ENV, warmup_rows=10, rate=0.0, seed=0)]).rollout(5)
+    assert (plain["next", "reward"] > -1).all()  # dense: minus the distance
+    for key in (("next", "reward"), ("next", "is_success"), "desired_goal"):
+        assert torch.equal(kept[key], plain[key]), key
+    proposer = GoalProposer(path, ENV, warmup_rows=10, seed=0, gym_kwargs={"reward_type": "dense"})
+    proposed = make_env(ENV, seed=5, reward_type="dense", transforms=[proposer]).rollout(5)
+    assert proposer.proposed == 1 and not torch.equal(proposed["desired_goal"], plain["desired_goal"])
+    dense = make_reward_fn(ENV, reward_type="dense")(proposed)
+    assert torch.equal(proposed["next", "reward"], dense.to(proposed["next", "reward"].dtype))
+    assert (proposed["next", "reward"] > -1).all()
+    with pytest.raises(TypeError, match="gym_kwargs must be a mapping"):
+        GoalProposer(path, ENV, gym_kwargs="dense")
+
+
+def test_a_partial_reset_keeps_the_rewards_of_an_env_on_its_own_goal(clustered):
+    """Two envs, the first on a proposed goal, the second (after its own reset, with rate 0) on the env's goal:
+    only the first's rewards are recomputed (sparse, the proposer's default), the second keeps the env's (dense)."""
+    path, _ = clustered
+    proposer = GoalProposer(path, ENV, warmup_rows=10, seed=0)
+    env = make_env(ENV, 2, seed=1, reward_type="dense", transforms=[proposer])
+    td = env.reset()
+    proposer.rate = 0.0  # the next reset keeps the env's own goal
+    td = step_mdp(env.rand_step(td))
+    td["_reset"] = torch.tensor([[False], [True]])
+    td = env.reset(td)
+    own_goal = td["desired_goal"][1].clone()
+    step = env.rand_step(td)
+    assert torch.equal(step["next", "desired_goal"][1], own_goal)
+    sparse, dense = make_reward_fn(ENV)(step), make_reward_fn(ENV, reward_type="dense")(step)
+    reward = step["next", "reward"]
+    assert float(reward[0]) == float(sparse[0])  # recomputed for the proposed goal
+    assert abs(float(reward[1]) - float(dense[1])) < 1e-5  # the env's own (in float64 from its own goal)
+    assert float(dense[1]) != float(sparse[1])
+
+
+@pytest.mark.parametrize("dim", [15, 1])
+def test_a_memory_of_another_goal_size_is_refused_naming_both_sizes(tmp_path, dim):
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(1000))
+    rb.extend(TensorDict({("next", "achieved_goal"): torch.rand(200, dim)}, [200]))
+    env = make_env(ENV, seed=0, transforms=[GoalProposer(rb, ENV, warmup_rows=10, seed=0)])
+    with pytest.raises(ValueError, match=rf"'desired_goal' has 3 dimensions but the memory's goals .* have {dim}"):
+        env.observation_spec  # noqa: B018 - the spec a collector reads first
+    empty = TensorDictReplayBuffer(storage=LazyTensorStorage(1000))  # no rows at the spec: at the first proposal
+    env = make_env(ENV, seed=0, transforms=[GoalProposer(empty, ENV, warmup_rows=10, seed=0)])
+    empty.extend(TensorDict({("next", "achieved_goal"): torch.rand(200, dim)}, [200]))
+    with pytest.raises(ValueError, match=rf"'desired_goal' has 3 dimensions but the memory's goals .* have {dim}"):
+        env.reset()
+
+
 @pytest.fixture(scope="module")
 def reach_memory(tmp_path_factory):
     """A real FetchReach memory: 400 random-policy frames (8 episodes)."""
