@@ -94,4 +94,17 @@ class PersistentHERReplayBuffer(HERReplayBuffer):
 
     def load_state_dict(self, state_dict: dict) -> None:
         super().load_state_dict(state_dict)
-        self._episode_ends_cache, self._last_cache_key = None, (-1,)  # rebuilt at the next sample, with this key
+        self._restored()
+
+    def loads(self, path) -> None:
+        super().loads(path)
+        self._restored()
+
+    def _restored(self) -> None:
+        """After a restore: the storage's record of its last written row (TorchRL's storages keep the one of
+        before the restore, in a buffer that wrote since) is dropped, so the restored writer's cursor says it;
+        the episode cache is rebuilt at the next sample."""
+        forget = getattr(self._storage, "_set_last_cursor", None)  # TorchRL's own setter (None: not recorded)
+        if forget is not None:
+            forget(None)
+        self._episode_ends_cache, self._last_cache_key = None, (-1,)

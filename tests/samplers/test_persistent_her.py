@@ -7,6 +7,8 @@ its achieved goal is unique, so each relabelled goal names the row it came from.
 """
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -127,3 +129,30 @@ def test_a_restored_full_ring_whose_newest_episode_is_open_never_crosses_it(tmp_
     for rb in (source, restored):
         if hasattr(rb.storage, "close"):
             rb.storage.close()
+
+
+@pytest.mark.parametrize("kind", ["lazy", "zarr"])
+@pytest.mark.parametrize("restore", ["load_state_dict", "loads"])
+def test_a_checkpoint_restored_into_a_buffer_that_wrote_since_never_crosses_the_open_episode(tmp_path, kind, restore):
+    """Found by a review: a rollback (or a resume into a buffer that has written) kept the storage's last cursor
+    of before the restore (TorchRL's storages do not reset it), so the checkpoint's open episode lost its end."""
+    rb = _buffer(LazyTensorStorage(130) if kind == "lazy" else ZarrStorage(
+        str(tmp_path / "m.zarr"), 130, env=ENV, goal_conditioned=False, chunk_rows=16), "final")
+    for ep in range(3):
+        rb.extend(_episode(ep, 50))
+    rb.extend(_episode(3, 50)[:20])  # episode 3 open at row 39
+    state = copy.deepcopy(rb.state_dict())  # (TorchRL's state holds the storage's own tensors)
+    if restore == "loads":
+        rb.dumps(tmp_path / "ckpt")
+    rb.extend(_episode(3, 50)[20:])  # training goes on: the last written row moves on
+    rb.extend(_episode(4, 50)[:17])
+    _check(rb)
+    if restore == "load_state_dict":
+        rb.load_state_dict(state)
+    else:
+        rb.loads(tmp_path / "ckpt")
+    for strategy in ("final", "episode", "future"):
+        rb.strategy = type(rb.strategy)(strategy)
+        _check(rb)
+    if hasattr(rb.storage, "close"):
+        rb.storage.close()

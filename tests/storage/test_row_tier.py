@@ -5,6 +5,7 @@ Real stores under ``tmp_path``; crash and cgroup cases are in ``tests/reliabilit
 """
 from __future__ import annotations
 
+import copy
 import gc
 import json
 import os
@@ -457,6 +458,46 @@ def test_loads_of_an_older_checkpoint_of_the_same_store_restores_it_as_lazy_tens
     again = TensorDictReplayBuffer(storage=ZarrStorage(path, goal_conditioned=False), batch_size=4)
     assert len(again) == 310 and int(again.writer._cursor) == 310
     again.storage.close()
+
+
+@pytest.mark.parametrize("max_size", [None, 130])
+def test_load_state_dict_of_an_older_state_of_the_same_store_restores_it_as_lazy_tensor_storage_does(
+        tmp_path, max_size):
+    """Found by a review: the store kept its newer rows and only put the writer back where the store stood, then
+    TorchRL loaded the state's writer (after the storage): the newest rows were past the writer's cursor, and
+    HER's episode ends (the last written row) said another episode's."""
+    path = str(tmp_path / "self.zarr")
+    buffers = {"zarr": TensorDictReplayBuffer(storage=ZarrStorage(path, max_size, chunk_rows=16,
+                                                                  goal_conditioned=False), batch_size=4),
+               "lazy": TensorDictReplayBuffer(storage=LazyTensorStorage(max_size or 100_000), batch_size=4)}
+    for rb in buffers.values():
+        rb.extend(_rows(0, 170))  # the ring wrapped
+        state = copy.deepcopy(rb.state_dict())  # a copy (as torch.save makes one)
+        rb.extend(_rows(170, 237))
+        rb.load_state_dict(state)
+        rb.extend(_rows(1000, 1010))
+    zarr, lazy = buffers["zarr"], buffers["lazy"]
+    assert len(zarr) == len(lazy) == (130 if max_size else 180)
+    assert torch.equal(zarr.storage[:]["obs"], lazy.storage[:]["obs"])
+    assert zarr.writer.state_dict() == lazy.writer.state_dict()
+    zarr.storage.close()
+    with ZarrStorage(path, goal_conditioned=False) as again:
+        assert torch.equal(again[:]["obs"], lazy.storage[:]["obs"])
+
+
+def test_load_state_dict_of_the_same_store_s_live_rows_after_it_moved_on_is_refused_and_changes_nothing(tmp_path):
+    path = str(tmp_path / "live.zarr")
+    with ZarrStorage(path, 100, chunk_rows=16, goal_conditioned=False) as st:
+        rb = TensorDictReplayBuffer(storage=st)
+        rb.extend(_rows(0, 40))
+        live = rb.state_dict()  # the storage's own tensors: no copy
+        rb.load_state_dict(live)  # nothing moved: the writer goes back where the store is
+        rb.extend(_rows(40, 50))
+        with pytest.raises(ValueError, match=r"moved on since \(len 40 -> 50, rows written 40 -> 50\).*not a copy"):
+            rb.load_state_dict(live)
+        assert len(st) == 50 and torch.equal(st["obs"], _rows(0, 50)["obs"]) and st.write_count == 50
+        rb.extend(_rows(50, 55))
+        assert torch.equal(st["obs"], _rows(0, 55)["obs"])
 
 
 def test_window_sampler_after_a_lazy_tensor_storage_state_is_loaded_into_a_ring(tmp_path):

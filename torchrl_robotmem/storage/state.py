@@ -99,3 +99,20 @@ def rows_of_state(source: Any) -> TensorDictBase | None:
 def _leading(td: TensorDictBase) -> torch.Size:
     leaf = next(iter(td.values(True, True)))
     return leaf.shape[:1]
+
+
+def shares_memory(rows: TensorDictBase | None, views: TensorDictBase | None) -> bool:
+    """Whether a leaf of ``rows`` is a view of the same memory as a leaf of ``views`` (a ``state_dict`` taken
+    from a live storage holds its own tensors, not a copy).
+
+    Example:
+        >>> live = TensorDict({"a": torch.zeros(4, 2)}, [4])
+        >>> shares_memory(TensorDict({"a": live["a"][:2]}, [2]), live), shares_memory(live.clone(), live)
+        (True, False)
+    """
+    if rows is None or views is None:
+        return False
+    live = {leaf.untyped_storage().data_ptr() for leaf in views.values(True, True) if isinstance(leaf, torch.Tensor)}
+    return any(leaf.untyped_storage().data_ptr() in live for leaf in rows.values(True, True)
+               if isinstance(leaf, torch.Tensor) and leaf.numel())
+

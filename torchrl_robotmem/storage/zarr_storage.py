@@ -24,7 +24,7 @@ from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
 from .planner import StoreView, check_rows, completes_chunk, counts_from_the_end, cursor_rows, plan_write, write_span
 from .schema import DataKind
-from .state import rows_of_state, source_kind, state_rows
+from .state import rows_of_state, shares_memory, source_kind, state_rows
 from .store import MemoryStore
 from .tags import TAG_KEYS, UNKNOWN_ENV
 
@@ -523,14 +523,34 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         return {"_storage": rows, "initialized": self.initialized, "_len": len(self), "zarr": zarr}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        """Loads another storage's ``state_dict``, replacing the rows (this store's own: only the writer position)."""
+        """Loads a storage's ``state_dict``, replacing the rows, as TorchRL's storages do.
+
+        This store's own state, where the store is as the state left it: only the writer position. Where the
+        store has moved on since (rows written after the state was taken; a ``torch.save``-d state loaded to
+        roll back), the state's rows are written back, as ``LazyTensorStorage`` restores them: the newer rows
+        are replaced. A state holding this store's live rows (taken without a copy) cannot give back the rows
+        of then, and is refused, naming both counts.
+        """
         meta = state_dict.get("zarr") or {}
+        rows = None
         if meta.get("store") is not None and meta.get("store") == self.path:
-            self._store.restore_writers(self, force=True)
-            self._bump_own()
-            return
+            then = [state_dict.get("_len"), meta.get("write_count")]
+            if then == [len(self), self.write_count]:
+                self._store.restore_writers(self, force=True)
+                self._bump_own()
+                return
+            rows = rows_of_state(state_dict.get("_storage"))
+            if rows is None or shares_memory(rows, self._mirror.views if self.initialized else None):
+                raise ValueError(
+                    f"This state_dict is of the store {self.path!r} itself, which has moved on since (len "
+                    f"{then[0]} -> {len(self)}, rows written {then[1]} -> {self.write_count}), and it holds the "
+                    f"store's live rows, not a copy: the rows of then cannot be restored. Take a copy when taking "
+                    f"the state (copy.deepcopy(rb.state_dict()), or torch.save it), or build the buffer on the "
+                    f"store without load_state_dict to go on from its newest rows."
+                )
         self._store.check_writable()
-        rows = rows_of_state(state_dict.get("_storage"))
+        if rows is None:
+            rows = rows_of_state(state_dict.get("_storage"))
         if self.initialized and len(self):
             self._empty()
         rows, n0, tagged = state_rows(rows, state_dict, ndim=self.ndim, env_code=lambda x: self.env_code(x, create=True))
