@@ -51,7 +51,10 @@ class RobotMemory:
         max_size (int, optional): capacity in transitions when the store is
             created. Defaults to 1_000_000; ignored for an existing store
             (whose capacity is kept) unless larger (then it grows, see
-            :class:`ZarrStorage`).
+            :class:`ZarrStorage`). An existing memory without a declared
+            capacity (made by ``ZarrStorage(path)``) opens with ``None`` and
+            refuses a number. To create one here, create it with
+            ``ZarrStorage(path).close()`` first.
 
     Keyword Args:
         env (str, optional): environment name for rows whose metadata has no
