@@ -26,6 +26,7 @@ import struct
 import subprocess
 import sys
 import textwrap
+import time
 import zipfile
 import zlib
 
@@ -465,3 +466,82 @@ def test_import_export_and_copy_onto_a_full_file_system(tmp_path):
     for r in room:
         assert r["rc"] == 0, r
     assert sorted(open(files[3]).read().split()) == ["c.zarr", "e.npz", "m.zarr"]
+
+
+_FORGED = {"a list": "[]", "null": "null", "attributes a list": json.dumps(
+    {"zarr_format": 3, "node_type": "group", "attributes": ["torchrl_robotmem"]}),
+    "nested 100k deep": "[" * 100_000 + "]" * 100_000}
+
+
+@pytest.mark.parametrize("case", sorted(_FORGED))
+def test_a_forged_record_or_a_truncated_zip_is_one_line_exit_2(case, tmp_path, capsys):
+    """Found by a review: a zarr.json that is valid JSON but not a node's metadata (or nested past the recursion
+    limit), and a *.zip memory cut half-way, ended in a traceback (AttributeError, TypeError, BadZipFile)."""
+    forged = tmp_path / "forged.zarr"
+    forged.mkdir()
+    (forged / "zarr.json").write_text(_FORGED[case])
+    src = str(tmp_path / "src.zarr")
+    with ZarrStorage(src, 100, env="E", goal_conditioned=False) as st:
+        st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0)}, [10]))
+    assert main(["export", src, str(tmp_path / "m.npz")]) == 0
+    assert main(["import", str(tmp_path / "m.npz"), str(tmp_path / "m.zip")]) == 0
+    data = (tmp_path / "m.zip").read_bytes()
+    (tmp_path / "cut.zip").write_bytes(data[: len(data) // 2])  # a download cut half-way
+    capsys.readouterr()
+    for target in (forged, tmp_path / "cut.zip"):
+        for args in (["inspect", str(target)], ["export", str(target), str(tmp_path / "x.npz")],
+                     ["copy", str(target), str(tmp_path / ("c.zip" if target.suffix == ".zip" else "c.zarr"))]):
+            assert main(args) == 2, args
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "is not a torchrl_robotmem memory" in err and "Traceback" not in err, (args, err)
+    assert not os.path.exists(tmp_path / "x.npz") and not os.path.exists(tmp_path / "c.zarr")
+
+
+def test_an_export_of_a_ring_a_writer_wraps_is_in_write_order_or_refused(tmp_path, capsys):
+    """Found by a review: an export while a writer wrapped a full ring rolled rows re-read at later commits by the
+    cursor of the record read at the open: the newest rows came first. Every export is now in write order
+    (each row's observation is its write number) or refused, saying why and what to do."""
+    path = str(tmp_path / "ring.zarr")
+    writer = textwrap.dedent(f"""
+        import time, torch
+        from tensordict import TensorDict
+        from torchrl.data import TensorDictReplayBuffer
+        from torchrl_robotmem import ZarrStorage
+        st = ZarrStorage({path!r}, max_size=300, chunk_rows=32, env="E", goal_conditioned=False,
+                         commit_interval=0.02)
+        rb = TensorDictReplayBuffer(storage=st, batch_size=4)
+        k = 0
+        while True:
+            rb.extend(TensorDict({{"observation": torch.arange(k, k + 7).float().unsqueeze(-1),
+                                   "next": {{"done": (torch.arange(k, k + 7) % 10 == 9).unsqueeze(-1)}}}}, [7]))
+            k += 7
+            if k > 600:
+                open({path!r} + ".wrapped", "w").close()
+            time.sleep(0.002)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", writer], env=ENV)
+    try:
+        while not os.path.exists(path + ".wrapped"):  # full, and wrapped twice: every export is of a wrapping ring
+            assert proc.poll() is None, "the writer died"
+            time.sleep(0.05)
+        outcomes = []
+        for attempt in range(6):
+            out = str(tmp_path / f"e{attempt}.npz")
+            code = main(["export", path, out])
+            err = capsys.readouterr().err
+            if code == 0:
+                w = np.load(out)["observation"][:, 0].astype(np.int64)
+                assert len(w) == 300 and (np.diff(w) == 1).all(), f"not in write order: {w.tolist()}"
+                outcomes.append("exported")
+            else:
+                assert code == 1 and "overwrote rows of this full ring while it was read" in err, err
+                assert "writer is stopped or paused" in err and not os.path.exists(out)
+                outcomes.append("refused")
+        print("outcomes:", outcomes)
+    finally:
+        proc.kill()
+        proc.wait()
+    out = str(tmp_path / "after.npz")  # the writer gone (killed): the committed rows, in write order
+    assert main(["export", path, out]) == 0
+    w = np.load(out)["observation"][:, 0].astype(np.int64)
+    assert (np.diff(w) == 1).all(), [(int(w[i]), int(w[i + 1])) for i in np.flatnonzero(np.diff(w) != 1)]

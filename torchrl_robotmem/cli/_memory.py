@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import zipfile
 from typing import Any
 
 import numpy as np
@@ -111,9 +112,12 @@ def open_memory(path: Any):
                 try:
                     with open(record) as f:
                         meta = json.load(f)
-                except (OSError, ValueError) as err:
-                    raise not_a_memory(path, f"unreadable zarr.json: {err}") from None
-                if meta.get("node_type") != "group" or FORMAT_MARKER not in (meta.get("attributes") or {}):
+                except (OSError, ValueError, RecursionError) as err:
+                    raise not_a_memory(path, f"unreadable zarr.json: {type(err).__name__}: {err}"[:300]) from None
+                if not isinstance(meta, dict):
+                    raise not_a_memory(path, f"zarr.json holds {json.dumps(meta)[:40]}, not a Zarr node's metadata")
+                attributes = meta.get("attributes")
+                if meta.get("node_type") != "group" or not isinstance(attributes, dict) or FORMAT_MARKER not in attributes:
                     raise not_a_memory(path, f"a Zarr {meta.get('node_type', 'node')} without the {FORMAT_MARKER!r} "
                                              "attribute")
         elif not name.endswith(".zip"):
@@ -122,8 +126,33 @@ def open_memory(path: Any):
         return ZarrStorage(path, read_only=True)
     except LinkError as err:
         raise CLIError(str(err), code=1) from None
-    except (FileNotFoundError, ValueError, OSError) as err:
+    except (FileNotFoundError, ValueError, OSError, zipfile.BadZipFile) as err:
         raise not_a_memory(path, str(err)) from None
+    except (TypeError, AttributeError, KeyError, RecursionError) as err:  # a record that is not a memory's
+        raise not_a_memory(path, f"its metadata is not a memory's ({type(err).__name__}: {err})"[:300]) from None
+
+
+#: times :func:`open_settled` opens a full ring again when a writer committed while it was read
+SETTLE_TRIES = 5
+
+
+def open_settled(path: Any):
+    """:func:`open_memory`, with rows that are one commit's: a full ring that a writer overwrote while it was
+    read (its record changed) is opened again, up to :data:`SETTLE_TRIES` times, then refused.
+
+    A reader reads each chunk whole, but chunks read at different commits of a wrapping ring are not in any
+    one write order: an export or a plot in write order needs the rows of one commit. A memory that is not
+    full is only appended to, and its rows up to the committed length do not change.
+    """
+    for _ in range(SETTLE_TRIES):
+        storage = open_memory(path)
+        if not is_full(storage) or storage.record(now=True) == storage.record():
+            return storage
+        storage.close()
+    raise CLIError(
+        f"{path}: a writer overwrote rows of this full ring while it was read, {SETTLE_TRIES} times in a row: rows "
+        f"of different commits cannot be put in write order. Export it while the writer is stopped or paused, or "
+        f"from a copy made then (robotmem copy).", code=1)
 
 
 def root_attrs(storage) -> dict:
@@ -165,7 +194,11 @@ def write_order(storage) -> np.ndarray:
     n0 = stored_along_dim0(storage)
     order = np.arange(n0)
     if is_full(storage):
-        cursor = int(root_attrs(storage).get("cursor", 0)) % max(n0, 1)
+        record = root_attrs(storage)
+        journal = record.get("journal")
+        if isinstance(journal, dict) and isinstance(journal.get("meta"), dict):
+            record = {**record, **journal["meta"]}  # a reader serves the rows of a pending journal (applied in RAM)
+        cursor = int(record.get("cursor", 0)) % max(n0, 1)
         order = np.roll(order, -cursor)
     return order
 

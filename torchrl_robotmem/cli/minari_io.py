@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ._build import atomic_target, check_target, new_store, progress
-from ._memory import DONE_KEY, SUCCESS_KEY, TAGS, column, has_key, open_memory, root_attrs, write_order
+from ._memory import DONE_KEY, SUCCESS_KEY, TAGS, column, has_key, open_settled, root_attrs, write_order
 from .errors import CLIError
 from .transitions import cast_float64
 
@@ -96,7 +96,7 @@ def export_minari(path: Any, out: str, *, obs_keys: list[str] | None = None) -> 
 
 def _read_transitions(path: Any, obs_keys: list[str] | None) -> dict[str, Any]:
     """The columns a Minari export needs, in write order, read from the memory at ``path``."""
-    storage = open_memory(path)
+    storage = open_settled(path)
     try:
         if not has_key(storage, "episode") or storage.ndim != 1 or storage.view().get("episode").ndim != 1:
             raise CLIError("only memories of flat transitions (TensorDict rows, ndim=1) export to Minari")

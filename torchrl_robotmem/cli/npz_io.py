@@ -26,7 +26,7 @@ import numpy as np
 
 from ._archive import READ_ERRORS, as_count, check_fits, inspect_npz, read_member
 from ._build import atomic_target, check_target, new_store, progress
-from ._memory import TAGS, column, open_memory, root_attrs, write_order
+from ._memory import TAGS, column, open_settled, root_attrs, write_order
 from .errors import CLIError
 from .plain_npz import import_plain_npz
 from .transitions import cast_float64
@@ -67,7 +67,7 @@ def export_npz(path: Any, out: str) -> dict[str, Any]:
     check_target(out)
     if not out.endswith(".npz"):
         raise CLIError(f"{out!r}: an npz export's name ends with .npz")
-    storage = open_memory(path)
+    storage = open_settled(path)
     try:
         attrs = root_attrs(storage)
         schema = attrs.get("schema") or {}

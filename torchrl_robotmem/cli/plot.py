@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ._memory import DONE_KEY, SUCCESS_KEY, flat_column, goal_key, has_key, open_memory, partial_path
+from ._memory import DONE_KEY, SUCCESS_KEY, flat_column, goal_key, has_key, open_settled, partial_path
 from .errors import CLIError
 
 __all__ = ["plot_memory", "memory_figures", "add_arguments", "rolling_success", "success_window", "run"]
@@ -135,7 +135,7 @@ def memory_figures(path: Any, *, window: int | None = None, max_points: int = 20
 
 def _read_columns(path: Any) -> dict[str, Any]:
     """The flat columns the figures draw (episode, run, env, success, done, goals) and the title, read-only."""
-    storage = open_memory(path)
+    storage = open_settled(path)
     try:
         if not len(storage) or not has_key(storage, "episode"):
             raise CLIError(f"{storage.path!r} holds no tagged TensorDict rows; nothing to plot")

@@ -198,6 +198,10 @@ class StoreHandle:
                                     read_only=self.read_only, on_damage=on_damage, served=served, mapped=mapped,
                                     decode=decode)
 
+    def current_record(self) -> dict:
+        """The commit record as the store holds it now (read again; the handle is unchanged)."""
+        return _backend.open_group(self.store, read_only=True).attrs.asdict()
+
     def reopen_record(self, *, on_damage: str, served: Callable[[dict], bool] | None = None,
                       mapped: bool = False) -> tuple[Any, dict]:
         """A reader's fresh group on its store and the checked record (``refresh``); the handle is unchanged.

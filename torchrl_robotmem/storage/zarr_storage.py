@@ -268,9 +268,14 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         """A copy of the stored columns, ``{path: {"dtype", "shape"}}`` with the tags; ``None`` before the first write."""
         return None if self._mirror.schema is None else {p: dict(s) for p, s in self._mirror.schema.items()}
 
-    def record(self) -> dict[str, Any]:
-        """The committed record (the store's group attributes) as plain JSON values."""
-        return self._handle.group.attrs.asdict()
+    def record(self, *, now: bool = False) -> dict[str, Any]:
+        """The committed record (the store's group attributes) as plain JSON values.
+
+        Keyword Args:
+            now (bool): read it again from the store (a writer may have committed since): the record as
+                committed now, not the one this handle loaded (or last refreshed). Default: ``False``.
+        """
+        return self._handle.current_record() if now else self._handle.group.attrs.asdict()
 
     def view(self) -> TensorDictBase:
         """Every row slot of the RAM mirror (``max_size`` rows, tags included) as views to read, not write."""
