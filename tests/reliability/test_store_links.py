@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -333,6 +334,27 @@ def test_a_local_url_is_walked_for_links_as_a_path_is(folder):
     for name in (f"local://{a}", f"file://{a}", str(a)):
         with pytest.raises(LinkError, match=key):
             ZarrStorage(name, read_only=True)
+
+
+@pytest.mark.parametrize("chain", ["simplecache::file://", "filecache::file://", "simplecache::"])
+def test_a_local_store_reached_through_an_fsspec_chain_is_refused_naming_its_path(folder, chain, capsys):
+    """Found by a review: ``simplecache::file://PATH`` was a URL, never walked for links: copy wrote the bytes of a
+    file a link below the store named into the copy, and verify said intact."""
+    a = folder / "a.zarr"
+    (folder / "private.txt").write_text("not the memory's\n")
+    os.symlink(folder / "private.txt", a / "README")
+    before = _hash_tree(folder)
+    name = f"{chain}{a}"
+    for read_only in (True, False):
+        with pytest.raises(ValueError, match=re.escape(f"open {str(a)!r} instead")):
+            ZarrStorage(name, read_only=read_only)
+    capsys.readouterr()
+    for argv in (["verify", name], ["inspect", name], ["copy", name, str(folder / "copy.zarr")],
+                 ["export", name, str(folder / "x.npz")]):
+        assert main(argv) != 0, argv
+        assert f"open {str(a)!r} instead" in capsys.readouterr().err, argv
+    assert not (folder / "copy.zarr").exists() and not (folder / "x.npz").exists()
+    assert _hash_tree(folder) == before
 
 
 def test_a_zip_path_is_never_created_by_repair_nor_written_when_it_holds_no_store(tmp_path, capsys):

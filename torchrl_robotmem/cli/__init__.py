@@ -125,9 +125,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
         return 141
-    except Exception as e:  # noqa: BLE001 - only a write without room or memory is turned into a line here
+    except Exception as e:  # noqa: BLE001 - only a write without room or memory, or a chained store name, here
+        from torchrl_robotmem.storage.errors import ChainedLocalPathError
+
         from ._build import no_room, write_failed
 
+        if isinstance(e, ChainedLocalPathError):  # a store name, refused wherever a command first reads it
+            print(f"robotmem {args.command}: error: {e}", file=sys.stderr)
+            return 2
         if no_room(e) is None:
             raise
         arg, built = TARGETS.get(args.command, (None, False))

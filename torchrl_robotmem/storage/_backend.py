@@ -23,7 +23,7 @@ from zarr.codecs import BloscCodec, Crc32cCodec, ZstdCodec
 from zarr.core.sync import sync
 
 from .contained import ContainedStore
-from .errors import IntegrityError, LinkError, Problem
+from .errors import ChainedLocalPathError, IntegrityError, LinkError, Problem
 from .format import FORMAT_MARKER, FORMAT_VERSION  # noqa: F401 - re-exported: the format lives in .format
 
 _TORCH2NP = {
@@ -119,6 +119,10 @@ def normalize_path(path: str | os.PathLike | Any) -> str | Any:
     if not isinstance(path, (str, os.PathLike)):
         return path
     spath = os.fspath(path)
+    if "::" in spath:  # an fsspec chain ("simplecache::file://..."): refused where its last link is a local path
+        chain, inner = spath.rsplit("::", 1)
+        if not is_url(inner) or inner.startswith(("file://", "local://")):
+            raise ChainedLocalPathError(spath, chain, str(Path(inner.split("://", 1)[-1]).expanduser().absolute()))
     for local in ("file://", "local://"):  # fsspec's names of the local filesystem: a path, walked for links
         if spath.startswith(local):
             spath = spath[len(local):]

@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["IntegrityError", "LinkError", "NotAMemoryError", "Problem"]
+__all__ = ["ChainedLocalPathError", "IntegrityError", "LinkError", "NotAMemoryError", "Problem"]
 
 #: what every damage message ends with: the commands that say more and mend the store
 HINT = "Run `robotmem verify {path}` for a full report and `robotmem repair {path}` to make it writable again."
@@ -118,3 +118,21 @@ class LinkError(IntegrityError):
 
 class NotAMemoryError(ValueError):
     """The path holds no torchrl_robotmem store."""
+
+
+class ChainedLocalPathError(ValueError):
+    """A local store named through an fsspec chain (``simplecache::file://PATH``): refused, naming ``PATH``.
+
+    A local store is opened by its path, so that links below its root are refused; through a chain the
+    local file system would follow them.
+
+    Example:
+        >>> str(ChainedLocalPathError("simplecache::file:///m.zarr", "simplecache", "/m.zarr")).endswith("open '/m.zarr' instead.")
+        True
+    """
+
+    def __init__(self, name: str, chain: str, local: str) -> None:
+        super().__init__(f"{name!r} reaches a local store through an fsspec chain ({chain}::): a local store is "
+                         f"opened by its path, so that links below its root are refused; open {local!r} instead.")
+        self.local = local
+
