@@ -525,3 +525,28 @@ def test_a_missing_optional_dependency_names_its_extra(tmp_path, capsys, monkeyp
     err = capsys.readouterr().err
     assert "needs minari" in err and "pip install 'torchrl_robotmem[minari]'" in err
     assert not (tmp_path / "ds" / "fetch-v0").exists() and not (tmp_path / "plots").exists()
+
+
+def test_a_target_spelled_as_a_local_url_lands_at_its_path_and_an_empty_one_is_refused(tmp_path, monkeypatch, capsys):
+    """Found by a review: copy / export / import to ``file://PATH`` built the target under ``./file:/PATH`` in the
+    current directory (reporting PATH), and an empty target built a sibling of the current directory."""
+    src = str(tmp_path / "m.zarr")
+    with ZarrStorage(src, 100, env="E", goal_conditioned=False) as st:
+        st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0)}, [10]))
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    assert main(["copy", src, f"file://{tmp_path}/c.zarr"]) == 0
+    assert main(["export", src, f"local://{tmp_path}/e.npz"]) == 0
+    assert main(["import", str(tmp_path / "e.npz"), f"file://{tmp_path}/i.zarr"]) == 0
+    for name in ("c.zarr", "i.zarr"):
+        with ZarrStorage(str(tmp_path / name), read_only=True) as st:
+            assert torch.equal(st["obs"], torch.arange(10.0)), name
+    assert os.path.isfile(tmp_path / "e.npz") and os.listdir(cwd) == []
+    assert main(["copy", src, f"file://{tmp_path}/c.zarr"]) != 0  # exists: refused at its real path
+    assert "exists; refusing to overwrite it" in capsys.readouterr().err
+    before = sorted(os.listdir(tmp_path))
+    for argv in (["import", str(tmp_path / "e.npz"), ""], ["export", src, " "], ["copy", src, ""]):
+        assert main(argv) == 2, argv
+        assert "is empty: name the file or memory to write" in capsys.readouterr().err
+    assert sorted(os.listdir(tmp_path)) == before and os.listdir(cwd) == []

@@ -65,6 +65,20 @@ EXTRAS = {"matplotlib": "plots", "minari": "minari", "h5py": "minari", "jax": "m
           "stable_baselines3": "sb3"}
 
 
+def _local_target(args: argparse.Namespace) -> None:
+    """A command's target spelled as a local URL (``file://PATH``, ``local://PATH``) becomes ``PATH`` (it was built
+    under ``./file:/PATH``); an empty one is refused (it named the current directory's parent's sibling)."""
+    arg = TARGETS.get(args.command, (None, False))[0]
+    value = getattr(args, arg, None) if arg else None
+    if not isinstance(value, str):
+        return
+    if not value.strip():
+        raise CLIError(f"the target ({arg.upper()}) is empty: name the file or memory to write")
+    for local in ("file://", "local://"):
+        if value.startswith(local) and "::" not in value:
+            setattr(args, arg, value[len(local):])
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``robotmem`` argument parser with one sub-command per :data:`COMMANDS` entry."""
     parser = argparse.ArgumentParser(
@@ -106,6 +120,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if getattr(args, "_unavailable", None):
             raise CLIError(args._unavailable, code=1)
+        _local_target(args)
         return int(importlib.import_module(COMMANDS[args.command]).run(args) or 0)
     except CLIError as e:
         print(f"robotmem {args.command}: error: {e}", file=sys.stderr)
