@@ -550,3 +550,25 @@ def test_a_target_spelled_as_a_local_url_lands_at_its_path_and_an_empty_one_is_r
         assert main(argv) == 2, argv
         assert "is empty: name the file or memory to write" in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path)) == before and os.listdir(cwd) == []
+
+
+@pytest.mark.parametrize("kind", ["tensor", "pytree"])
+def test_an_import_of_a_tensor_or_pytree_memory_s_export_succeeds(tmp_path, capsys, kind):
+    """Found by a review: the import wrote the memory, then its report read an ``episode`` column such a memory
+    does not have: a traceback and exit 1, and a rerun was refused (the target existed)."""
+    from torchrl.data import ReplayBuffer
+
+    src = str(tmp_path / "t.zarr")
+    data = torch.arange(30.0).reshape(10, 3)
+    st = ZarrStorage(src, max_size=50, goal_conditioned=False)
+    ReplayBuffer(storage=st, batch_size=4).extend(data if kind == "tensor" else {"a": data, "b": (data[:, 0], data)})
+    st.close()
+    assert main(["export", src, str(tmp_path / "t.npz")]) == 0
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "t.npz"), str(tmp_path / "u.zarr")]) == 0
+    assert capsys.readouterr().out.strip() == f"imported 10 rows into {tmp_path / 'u.zarr'}"
+    with ZarrStorage(str(tmp_path / "u.zarr"), read_only=True) as back, ZarrStorage(src, read_only=True) as before:
+        assert len(back) == 10
+        got, want = back[:10], before[:10]
+        assert torch.equal(got, want) if kind == "tensor" else all(
+            torch.equal(a, b) for a, b in zip(torch.utils._pytree.tree_leaves(got), torch.utils._pytree.tree_leaves(want)))

@@ -38,6 +38,8 @@ from __future__ import annotations
 import argparse
 import os
 
+import numpy as np
+
 from .errors import CLIError
 from .minari_io import export_minari, import_minari
 from .npz_io import export_npz, import_npz
@@ -73,12 +75,19 @@ def _refuse_memory_source(src: str) -> None:
         raise CLIError(f"{src!r} is a torchrl_robotmem memory; to copy it use: robotmem copy {src} DST")
 
 
-def _episodes(path: str) -> int:
+def _episodes(path: str) -> int | None:
+    """Episodes the memory at ``path`` holds (``None``: its rows carry no episode ids, a tensor or pytree memory)."""
     from torchrl_robotmem.storage import ZarrStorage
+
+    from ._memory import flat_column, has_key
 
     storage = ZarrStorage(path, read_only=True)
     try:
-        return int(storage["episode"].unique().numel()) if len(storage) else 0
+        if not len(storage):
+            return 0
+        if not has_key(storage, "episode"):
+            return None
+        return int(np.unique(flat_column(storage, "episode")).size)
     finally:
         storage.close()
 
@@ -131,5 +140,6 @@ def run(args: argparse.Namespace) -> int:
         rows = (import_npz if fmt == "npz" else import_minari)(args.src, args.path, **kwargs)
     for note in notes:
         print(note)
-    print(f"imported {rows:,} rows ({_episodes(args.path):,} episodes) into {args.path}")
+    episodes = _episodes(args.path)
+    print(f"imported {rows:,} rows" + (f" ({episodes:,} episodes)" if episodes is not None else "") + f" into {args.path}")
     return 0
