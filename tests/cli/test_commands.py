@@ -572,3 +572,19 @@ def test_an_import_of_a_tensor_or_pytree_memory_s_export_succeeds(tmp_path, caps
         got, want = back[:10], before[:10]
         assert torch.equal(got, want) if kind == "tensor" else all(
             torch.equal(a, b) for a, b in zip(torch.utils._pytree.tree_leaves(got), torch.utils._pytree.tree_leaves(want)))
+
+
+def test_copy_of_a_damaged_memory_names_the_source_and_what_mends_it(tmp_path, capsys):
+    """Found by a review: the open of a sealed source reads no chunk, so the damage surfaced in the copy's own
+    check: the error blamed the removed build, told to verify / repair it and to run the copy again."""
+    src = str(tmp_path / "a.zarr")
+    with ZarrStorage(src, 100, env="E", goal_conditioned=False) as st:
+        st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0)}, [10]))
+    with open(os.path.join(src, "obs", "c", "0"), "wb") as f:
+        f.write(b"bit rot")  # after the clean close: the row file still serves every row
+    capsys.readouterr()
+    assert main(["copy", src, str(tmp_path / "b.zarr")]) == 1
+    err = capsys.readouterr().err
+    assert f"{src!r} is damaged" in err and "obs/c/0" in err and f"robotmem repair {src}" in err, err
+    assert "partial" not in err and "run it again" not in err
+    assert not os.path.exists(tmp_path / "b.zarr") and sorted(os.listdir(tmp_path)) == ["a.zarr"]

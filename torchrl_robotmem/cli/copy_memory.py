@@ -108,6 +108,28 @@ def _check_copy(target: str, rows: int, env_names: list[str], *, single_file: bo
     return str(report).split(": ", 1)[-1]
 
 
+def _checked_copy(src: Any, dst: Any, target: str, rows: int, env_names: list[str], *, single_file: bool) -> str:
+    """:func:`_check_copy`; where the copy is damaged because the source is (a damaged chunk a sealed source's open
+    did not read), the error names the source and what mends it."""
+    from torchrl_robotmem.storage.integrity import IntegrityError, verify
+
+    try:
+        return _check_copy(target, rows, env_names, single_file=single_file)
+    except (IntegrityError, CLIError):
+        if single_file:
+            raise
+        try:
+            report = verify(src)
+        except Exception:  # noqa: BLE001 - the source cannot be verified: the copy's own error stands
+            report = None
+        if report is None or report.ok:
+            raise
+        first = report.errors[0] if report.errors else report
+        raise CLIError(f"{src!r} is damaged ({len(report.errors)} problem(s), first: {first}), so a copy of it is "
+                       f"too; nothing was left at {dst!r}. Run `robotmem verify {src}` for the report and "
+                       f"`robotmem repair {src}` to mend it, then copy again.", code=1) from None
+
+
 def _refuse_existing(dst: str) -> None:
     if is_local(dst):
         check_target(dst)
@@ -171,7 +193,7 @@ def copy_memory(src: Any, dst: str) -> dict[str, Any]:
             _unchanged(src_fs, src_root, files[-1], record, src)
             if files == [""] and not _same_bytes(src_fs, src_root, dst_fs, dst_root):
                 raise CLIError(f"the copy of {src!r} differs from it byte for byte (a write meanwhile?)")
-            verified = _check_copy(tmp, rows, env_names, single_file=files == [""])
+            verified = _checked_copy(src, dst, tmp, rows, env_names, single_file=files == [""])
         return {"rows": rows, "files": len(files), "bytes": size, "verified": verified}
     dst_fs, dst_root = _fs(dst)
     try:
@@ -179,7 +201,7 @@ def copy_memory(src: Any, dst: str) -> dict[str, Any]:
         _unchanged(src_fs, src_root, files[-1], record, src)
         if files == [""] and not _same_bytes(src_fs, src_root, dst_fs, dst_root):
             raise CLIError(f"the copy of {src!r} differs from it byte for byte (a write meanwhile?)")
-        verified = _check_copy(dst, rows, env_names, single_file=files == [""])
+        verified = _checked_copy(src, dst, dst, rows, env_names, single_file=files == [""])
     except BaseException:
         if dst_fs.exists(dst_root):  # only what this copy wrote: dst did not exist before it
             dst_fs.rm(dst_root, recursive=True)
