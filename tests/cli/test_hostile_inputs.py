@@ -545,3 +545,21 @@ def test_an_export_of_a_ring_a_writer_wraps_is_in_write_order_or_refused(tmp_pat
     assert main(["export", path, out]) == 0
     w = np.load(out)["observation"][:, 0].astype(np.int64)
     assert (np.diff(w) == 1).all(), [(int(w[i]), int(w[i + 1])) for i in np.flatnonzero(np.diff(w) != 1)]
+
+
+@pytest.mark.parametrize("key, value", [("episode", np.iinfo(np.int64).max), ("run", 2**62), ("episode", -5)])
+def test_an_npz_whose_episode_or_run_ids_cannot_be_counted_on_is_refused_naming_the_key(tmp_path, capsys, key, value):
+    """Found by a review: ids at the int64 limit imported and verified, and the memory's first write raised
+    OverflowError (the next id is the largest + 1)."""
+    src = str(tmp_path / "a.zarr")
+    with ZarrStorage(src, 100, env="E", goal_conditioned=False) as st:
+        st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0)}, [10]))
+    assert main(["export", src, str(tmp_path / "a.npz")]) == 0
+    arrays = dict(np.load(tmp_path / "a.npz"))
+    arrays[key][3] = value  # an edited (or hostile) export
+    np.savez(tmp_path / "b.npz", **arrays)
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "b.npz"), str(tmp_path / "b.zarr")]) != 0
+    err = capsys.readouterr().err
+    assert f"the state's {key!r} ids must be in [0, 2**62)" in err and err.count("\n") == 1, err
+    assert not os.path.exists(tmp_path / "b.zarr")

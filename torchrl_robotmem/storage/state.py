@@ -27,6 +27,10 @@ from .schema import DataKind, with_constants
 __all__ = ["rows_of_state", "source_kind", "state_rows"]
 
 
+#: episode and run ids a loaded state may carry: below it, the store's next id (the largest + 1) stays countable
+MAX_TAG = 2**62
+
+
 def state_rows(rows: TensorDictBase | None, state_dict: dict[str, Any], *, ndim: int,
                env_code: Callable[[str], int] | None) -> tuple[TensorDictBase | None, int, bool]:
     """The rows of a storage ``state_dict`` to write, their first-dimension count, and whether they carry tags.
@@ -54,6 +58,11 @@ def state_rows(rows: TensorDictBase | None, state_dict: dict[str, Any], *, ndim:
     if tags is not None:
         tags = TensorDict().load_state_dict(tags, strict=False)
         tags.batch_size = _leading(tags)
+        for key in ("episode", "run"):  # counters the store goes on from: the next id must be one it can count
+            ids = tags.get(key, None)
+            if ids is not None and ids[:n0].numel() and not (0 <= int(ids[:n0].min()) and int(ids[:n0].max()) < MAX_TAG):
+                raise ValueError(f"the state's {key!r} ids must be in [0, 2**62), got {int(ids[:n0].min())} to "
+                                 f"{int(ids[:n0].max())}: the store counts new {key} ids on from the largest")
         rows = rows.clone(False)
         rows.update(tags[:n0])
         table = torch.tensor([env_code(x) for x in meta.get("env_names", [])] + [-1])
