@@ -563,3 +563,25 @@ def test_an_npz_whose_episode_or_run_ids_cannot_be_counted_on_is_refused_naming_
     err = capsys.readouterr().err
     assert f"the state's {key!r} ids must be in [0, 2**62)" in err and err.count("\n") == 1, err
     assert not os.path.exists(tmp_path / "b.zarr")
+
+
+def test_repair_of_a_damaged_zip_memory_changes_nothing_and_says_how(tmp_path, capsys):
+    """Found by a review: repair appended a backup to the zip, then raised BadZipFile reading the damaged member."""
+    src = str(tmp_path / "a.zarr")
+    with ZarrStorage(src, 100, env="E", goal_conditioned=False) as st:
+        st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0), "act": torch.ones(10, 2)}, [10]))
+    assert main(["export", src, str(tmp_path / "a.npz")]) == 0
+    zpath = str(tmp_path / "m.zip")
+    assert main(["import", str(tmp_path / "a.npz"), zpath]) == 0
+    with zipfile.ZipFile(zpath) as z:
+        info = z.getinfo("act/zarr.json")
+    data = bytearray(open(zpath, "rb").read())
+    data[info.header_offset + 30 + len(info.filename) + 5] ^= 0xFF  # one byte of act/zarr.json's data
+    open(zpath, "wb").write(bytes(data))
+    capsys.readouterr()
+    assert main(["verify", zpath]) == 1
+    assert "Bad CRC-32" in capsys.readouterr().out
+    assert main(["repair", zpath]) == 1
+    err = capsys.readouterr().err
+    assert "repair does not write into a *.zip memory" in err and "python -m zipfile -e" in err, err
+    assert "Traceback" not in err and open(zpath, "rb").read() == bytes(data)

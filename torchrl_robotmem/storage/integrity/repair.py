@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -147,6 +148,11 @@ def repair(path: Any, *, mode: str = "truncate", storage_options: dict | None = 
             return RepairReport(before, before, actions)
         if any(p.kind == "format" for p in before.problems):
             raise IntegrityError(before.path, before.errors, action="repair does not touch a store of a newer format:")
+        name = _backend.normalize_path(path)
+        if not dry_run and isinstance(name, str) and name.endswith(".zip") and os.path.isfile(name):
+            raise IntegrityError(before.path, before.errors, action=(
+                "repair does not write into a *.zip memory (a zip is written once; nothing was changed): unzip it "
+                f"into a directory (python -m zipfile -e {name} DIR.zarr), repair that, and zip it again if needed:"))
         metas = _refusals(before, store, local_dir)
         report = _repair(before, store, local_dir, path, storage_options, dry_run, metas)
         report.actions[:0] = _remove_partials(local_dir, dry_run)
