@@ -168,6 +168,11 @@ def test_plot_writes_pngs(memory, tmp_path, capsys):
         data = (out / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
     assert str(out / "goals.png") in capsys.readouterr().out
+    # nothing is overwritten (found by a review: an existing success.png was replaced)
+    (out / "success.png").write_bytes(b"someone's figure")
+    assert main(["plot", memory, "--out", str(out)]) == 2
+    assert "exist; refusing to overwrite them" in capsys.readouterr().err
+    assert (out / "success.png").read_bytes() == b"someone's figure"
 
 
 def test_npz_round_trip_is_bit_exact(tmp_path):
@@ -588,3 +593,13 @@ def test_copy_of_a_damaged_memory_names_the_source_and_what_mends_it(tmp_path, c
     assert f"{src!r} is damaged" in err and "obs/c/0" in err and f"robotmem repair {src}" in err, err
     assert "partial" not in err and "run it again" not in err
     assert not os.path.exists(tmp_path / "b.zarr") and sorted(os.listdir(tmp_path)) == ["a.zarr"]
+
+
+@pytest.mark.parametrize("cell, said", [("nan", "--cell must be a finite size > 0, got nan"),
+                                        ("inf", "--cell must be a finite size > 0, got inf"),
+                                        ("1e-300", "is too small for goals of magnitude up to")])
+def test_inspect_refuses_a_coverage_cell_it_cannot_count_in(memory, capsys, cell, said):
+    """Found by a review: --cell nan and --cell 1e-300 reported 1 occupied cell (the floor overflowed int64)."""
+    capsys.readouterr()
+    assert main(["inspect", memory, "--cell", cell]) == 2
+    assert said in capsys.readouterr().err

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 from typing import Any
 
@@ -72,8 +73,8 @@ def summarize(path: Any, *, cell: float = 0.05, goal: str | None = None) -> dict
         >>> s["envs"][0]["name"], s["envs"][0]["episodes"]
         ('FetchReach-v4', 2)
     """
-    if cell <= 0:
-        raise ValueError(f"cell must be > 0, got {cell}.")
+    if not (math.isfinite(cell) and cell > 0):
+        raise ValueError(f"cell must be a finite size > 0, got {cell}.")
     from torchrl_robotmem.storage import ZarrStorage
 
     storage = path if isinstance(path, ZarrStorage) else open_memory(path)
@@ -167,7 +168,11 @@ def _coverage(goals: np.ndarray, cell: float, key) -> dict[str, Any]:
     if len(finite):
         cov["min"] = finite.min(0).tolist()
         cov["max"] = finite.max(0).tolist()
-        cov["cells"] = int(len(np.unique(np.floor(finite / cell).astype(np.int64), axis=0)))
+        scaled = np.floor(finite.astype(np.float64) / cell)
+        if not (np.isfinite(scaled).all() and np.abs(scaled).max() < 2.0**62):
+            raise ValueError(f"cell {cell} is too small for goals of magnitude up to {np.abs(finite).max():g}: "
+                             f"more cells a side than can be counted; give a larger cell.")
+        cov["cells"] = int(len(np.unique(scaled.astype(np.int64), axis=0)))
     return cov
 
 
@@ -203,11 +208,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.cell <= 0:
-        from .errors import CLIError
+    from .errors import CLIError
 
-        raise CLIError(f"--cell must be > 0, got {args.cell}")
-    summary = summarize(args.path, cell=args.cell, goal=args.goal_key)
+    if not (math.isfinite(args.cell) and args.cell > 0):
+        raise CLIError(f"--cell must be a finite size > 0, got {args.cell}")
+    try:
+        summary = summarize(args.path, cell=args.cell, goal=args.goal_key)
+    except ValueError as err:
+        if "too small for goals" not in str(err):
+            raise
+        raise CLIError(f"--cell {args.cell}: {err}") from None
     if args.json:
         print(json.dumps(summary))
     else:

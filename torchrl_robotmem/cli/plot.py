@@ -63,6 +63,10 @@ def rolling_success(success: np.ndarray, window: int) -> np.ndarray:
     return (total[i] - total[start]) / (i - start)
 
 
+#: the files :func:`plot_memory` writes
+FIGURES = ("success.png", "goals.png")
+
+
 def plot_memory(path: Any, out_dir: str, *, window: int | None = None, max_points: int = 20_000) -> list[str]:
     """Writes ``success.png`` and ``goals.png`` for the memory at ``path`` into ``out_dir``.
 
@@ -93,6 +97,11 @@ def plot_memory(path: Any, out_dir: str, *, window: int | None = None, max_point
     """
     import matplotlib.pyplot as plt
 
+    existing = [os.path.join(out_dir, n) for n in FIGURES if os.path.lexists(os.path.join(out_dir, n))]
+    if existing:  # nothing is overwritten (as an export's OUT)
+        raise CLIError(f"{', '.join(repr(p) for p in existing)} exist{'s' if len(existing) == 1 else ''}; refusing to "
+                       f"overwrite {'it' if len(existing) == 1 else 'them'}. Remove {'it' if len(existing) == 1 else 'them'} "
+                       f"or choose another --out.")
     figures = memory_figures(path, window=window, max_points=max_points)
     os.makedirs(out_dir, exist_ok=True)
     written = []
