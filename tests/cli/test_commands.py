@@ -603,3 +603,11 @@ def test_inspect_refuses_a_coverage_cell_it_cannot_count_in(memory, capsys, cell
     capsys.readouterr()
     assert main(["inspect", memory, "--cell", cell]) == 2
     assert said in capsys.readouterr().err
+
+
+def test_inspect_of_a_group_as_the_goal_key_names_the_stored_columns(memory, capsys):
+    """Found by a review: --goal-key next (a group of columns, not a column) was a traceback."""
+    capsys.readouterr()
+    assert main(["inspect", memory, "--goal-key", "next"]) == 2
+    err = capsys.readouterr().err
+    assert "the memory has no column 'next'; stored keys:" in err and "next/achieved_goal" in err

@@ -225,7 +225,8 @@ def goal_key(storage, requested=None):
     """The achieved-goal column to report on: ``requested`` or the first of :data:`GOAL_KEYS` stored."""
     if requested is not None:
         key = tuple(requested.split("/")) if isinstance(requested, str) and "/" in requested else requested
-        if not has_key(storage, key):
+        path = "/".join(key) if isinstance(key, tuple) else key
+        if not has_key(storage, key) or path not in {*schema_paths(storage), "episode", "run", "env"}:  # not a group
             raise CLIError(f"the memory has no column {requested!r}; stored keys: {', '.join(schema_paths(storage))}")
         return key
     return next((k for k in GOAL_KEYS if has_key(storage, k)), None)
