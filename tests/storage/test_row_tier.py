@@ -500,6 +500,77 @@ def test_load_state_dict_of_the_same_store_s_live_rows_after_it_moved_on_is_refu
         assert torch.equal(st["obs"], _rows(0, 55)["obs"])
 
 
+def _obs(lo: int, n: int, **extra) -> TensorDict:
+    return TensorDict({"obs": torch.arange(lo, lo + n, dtype=torch.float32).unsqueeze(-1), **extra}, [n])
+
+
+@pytest.mark.parametrize("how", ["load_state_dict", "dumps/loads"])
+@pytest.mark.parametrize("change", ["written again in place", "emptied and refilled"])
+def test_a_rollback_to_a_state_with_the_same_counts_restores_its_rows_as_lazy_tensor_storage_does(
+        tmp_path, how, change):
+    """Found by a review: the store was taken as the state left it whenever len and write_count matched, and
+    in-place writes (rb[i] = x) and an empty() then as many rows again keep both counts: the newer rows stayed."""
+    out = {}
+    for name, st in (("lazy", LazyTensorStorage(10)), ("zarr", ZarrStorage(str(tmp_path / "m.zarr"), 10,
+                                                                            goal_conditioned=False))):
+        rb = TensorDictReplayBuffer(storage=st, batch_size=2)
+        rb.extend(_obs(0, 4))
+        ckpt = tmp_path / f"ckpt-{name}"
+        state = copy.deepcopy(rb.state_dict()) if how == "load_state_dict" else rb.dumps(ckpt)
+        if change == "written again in place":
+            rb[1] = _obs(100, 1)[0]
+        else:
+            rb.empty()
+            rb.extend(_obs(50, 4))
+        rb.load_state_dict(state) if how == "load_state_dict" else rb.loads(ckpt)
+        out[name] = (rb.storage[:]["obs"].flatten().tolist(), rb.writer.state_dict())
+    assert out["zarr"] == out["lazy"] and out["lazy"][0] == [0.0, 1.0, 2.0, 3.0]
+    rb.storage.close()
+    with ZarrStorage(str(tmp_path / "m.zarr"), read_only=True) as again:
+        assert again["obs"].flatten().tolist() == [0.0, 1.0, 2.0, 3.0]
+
+
+@pytest.mark.parametrize("case", ["a column added since", "other columns", "more rows than the capacity"])
+def test_a_state_the_store_cannot_hold_is_refused_before_anything_changes(tmp_path, case):
+    """Found by a review: load_state_dict emptied the store (durably) before the state's rows were checked."""
+    path = str(tmp_path / "m.zarr")
+    st = ZarrStorage(path, 10, goal_conditioned=False)
+    rb = TensorDictReplayBuffer(storage=st, batch_size=2)
+    rb.extend(_obs(0, 4))
+    if case == "a column added since":
+        state = copy.deepcopy(st.state_dict())
+        rb.extend(_obs(7, 2, extra=torch.ones(2, 1)))
+        said = "missing keys \\['extra'\\]"
+    else:
+        src = TensorDict({"other": torch.zeros(3, 1)}, [3]) if case == "other columns" else _obs(0, 20)
+        lts = LazyTensorStorage(len(src))
+        lts.set(torch.arange(len(src)), src)
+        state = lts.state_dict()
+        said = "missing keys \\['obs'\\]" if case == "other columns" else "holds at most 10 .* Nothing was changed"
+    before = (len(st), st.write_count, st["obs"].clone(), rb.writer.state_dict())
+    with pytest.raises((KeyError, ValueError), match=said):
+        st.load_state_dict(state)
+    assert (len(st), st.write_count) == before[:2] and torch.equal(st["obs"], before[2])
+    rb.extend(_obs(30, 1, **({"extra": torch.ones(1, 1)} if case == "a column added since" else {})))  # it goes on
+    st.close()
+    with ZarrStorage(path, read_only=True) as again:
+        assert len(again) == before[0] + 1 and torch.equal(again["obs"][:before[0]], before[2])
+
+
+def test_the_state_of_a_buffer_before_its_first_write_loads_as_lazy_tensor_storage_loads_it(tmp_path):
+    """Found by a review: it was refused as a live state (it holds no rows at all)."""
+    out = {}
+    for name, st in (("lazy", LazyTensorStorage(10)), ("zarr", ZarrStorage(str(tmp_path / "m.zarr"), 10,
+                                                                            goal_conditioned=False))):
+        rb = TensorDictReplayBuffer(storage=st, batch_size=2)
+        state = copy.deepcopy(rb.state_dict())
+        rb.extend(_obs(0, 5))
+        rb.load_state_dict(state)
+        out[name] = (len(rb), rb.writer.state_dict())
+    assert out["zarr"] == out["lazy"] == (0, {"_cursor": 0, "_write_count": 0})
+    rb.storage.close()
+
+
 def test_window_sampler_after_a_lazy_tensor_storage_state_is_loaded_into_a_ring(tmp_path):
     """Found by a review: the window was placed by the store's count of rows written (the rows the load wrote),
     not by the last row written, so after a load of a wrapped buffer it held the wrong rows, also after a

@@ -76,10 +76,13 @@ class ZarrCheckpointer(StorageCheckpointerBase):
             )
         with open(pointer) as f:
             meta = json.load(f)
+        source = None
         if meta["store"] == storage.path:
             if [meta.get("len"), meta.get("write_count")] == [len(storage), storage.write_count]:
-                storage.resume_writers()  # the store is as the checkpoint left it (the writer loaded next agrees)
-                return
+                source = self._open_copy(path, meta)
+                if source is None or storage.holds(source.state_dict()):  # as the checkpoint left it (in place
+                    storage.resume_writers()  # writes and an emptied-and-refilled store have the same counts)
+                    return
             if not meta.get("copy"):
                 raise ValueError(
                     f"This checkpoint points to the store {storage.path!r} itself, which has moved on since "
@@ -96,8 +99,16 @@ class ZarrCheckpointer(StorageCheckpointerBase):
                 f"the buffer's storage is {storage.path!r}. Build the buffer with "
                 f"ZarrStorage({meta['store']!r}) to resume from it."
             )
-        if self.open_copy is not None:
-            source = self.open_copy(path / meta["copy"])
-        else:
-            source = type(storage)(path / meta["copy"], read_only=True)
+        if source is None:
+            source = self._open_copy(path, meta)
         storage.load_state_dict(source.state_dict())
+
+    def _open_copy(self, path: Path, meta: dict) -> Any:
+        """The checkpoint's copy of the store, read-only (``None``: it holds none, a URL store's checkpoint)."""
+        if not meta.get("copy"):
+            return None
+        if self.open_copy is not None:
+            return self.open_copy(path / meta["copy"])
+        from .zarr_storage import ZarrStorage
+
+        return ZarrStorage(path / meta["copy"], read_only=True)

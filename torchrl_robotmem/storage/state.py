@@ -54,10 +54,8 @@ def state_rows(rows: TensorDictBase | None, state_dict: dict[str, Any], *, ndim:
         return None, 0, False
     n0 = -(-n // max(1, math.prod(rows.shape[1:ndim])))
     rows = rows[:n0]
-    tags = meta.get("tags") or None
+    tags = state_tags(meta)
     if tags is not None:
-        tags = TensorDict().load_state_dict(tags, strict=False)
-        tags.batch_size = _leading(tags)
         for key in ("episode", "run"):  # counters the store goes on from: the next id must be one it can count
             ids = tags.get(key, None)
             if ids is not None and ids[:n0].numel() and not (0 <= int(ids[:n0].min()) and int(ids[:n0].max()) < MAX_TAG):
@@ -70,6 +68,21 @@ def state_rows(rows: TensorDictBase | None, state_dict: dict[str, Any], *, ndim:
     if meta.get("constants"):
         rows = with_constants(rows.clone(False), meta["constants"])
     return rows, n0, tags is not None
+
+
+def state_tags(meta: dict[str, Any]) -> TensorDictBase | None:
+    """The tag columns (``episode``, ``run``, ``env``) of a ``ZarrStorage`` state's ``"zarr"`` entry, or ``None``.
+
+    Example:
+        >>> state_tags({"tags": {"episode": torch.zeros(3, dtype=torch.long)}}).batch_size, state_tags({})
+        (torch.Size([3]), None)
+    """
+    tags = meta.get("tags") or None
+    if tags is None:
+        return None
+    tags = TensorDict().load_state_dict(tags, strict=False)
+    tags.batch_size = _leading(tags)
+    return tags
 
 
 def source_kind(state_dict: dict[str, Any], stored: DataKind, *, has_schema: bool) -> DataKind:

@@ -6,6 +6,7 @@ The TorchRL ``Storage`` contract, composing the parts of this package; ``docs/st
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sys
 import weakref
@@ -24,7 +25,7 @@ from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
 from .planner import StoreView, check_rows, completes_chunk, counts_from_the_end, cursor_rows, plan_write, write_span
 from .schema import DataKind
-from .state import rows_of_state, shares_memory, source_kind, state_rows
+from .state import rows_of_state, shares_memory, source_kind, state_rows, state_tags
 from .store import MemoryStore
 from .tags import TAG_KEYS, UNKNOWN_ENV
 
@@ -530,32 +531,33 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         """Loads a storage's ``state_dict``, replacing the rows, as TorchRL's storages do.
 
-        This store's own state, where the store is as the state left it: only the writer position. Where the
-        store has moved on since (rows written after the state was taken; a ``torch.save``-d state loaded to
-        roll back), the state's rows are written back, as ``LazyTensorStorage`` restores them: the newer rows
-        are replaced. A state holding this store's live rows (taken without a copy) cannot give back the rows
-        of then, and is refused, naming both counts.
+        This store's own state, where the store holds what the state holds: only the writer position. Where the
+        store has changed since (rows written or written again after the state was taken; a ``copy.deepcopy``-d
+        state loaded to roll back), the state's rows are written back, as ``LazyTensorStorage`` restores them:
+        the newer rows are replaced. A state holding this store's live rows (taken without a copy) cannot give
+        back the rows of then where the store has moved on, and is refused, naming both counts. A state this
+        store cannot hold (more rows than its capacity, a column it lacks, another dtype or shape) is refused
+        before anything changes, naming what.
         """
         meta = state_dict.get("zarr") or {}
-        rows = None
+        rows = rows_of_state(state_dict.get("_storage"))
         if meta.get("store") is not None and meta.get("store") == self.path:
             then = [state_dict.get("_len"), meta.get("write_count")]
-            if then == [len(self), self.write_count]:
+            live = rows is not None and shares_memory(rows, self._mirror.views if self.initialized else None)
+            if then == [len(self), self.write_count] and (live or self.holds(state_dict)):
                 self._store.restore_writers(self, force=True)
                 self._bump_own()
                 return
-            rows = rows_of_state(state_dict.get("_storage"))
-            if rows is None or shares_memory(rows, self._mirror.views if self.initialized else None):
+            if live:
                 raise ValueError(
                     f"This state_dict is of the store {self.path!r} itself, which has moved on since (len "
                     f"{then[0]} -> {len(self)}, rows written {then[1]} -> {self.write_count}), and it holds the "
                     f"store's live rows, not a copy: the rows of then cannot be restored. Take a copy when taking "
-                    f"the state (copy.deepcopy(rb.state_dict()), or torch.save it), or build the buffer on the "
-                    f"store without load_state_dict to go on from its newest rows."
+                    f"the state (copy.deepcopy(rb.state_dict())), or build the buffer on the store without "
+                    f"load_state_dict to go on from its newest rows."
                 )
         self._store.check_writable()
-        if rows is None:
-            rows = rows_of_state(state_dict.get("_storage"))
+        self._check_state(rows, state_dict)  # before anything changes: LazyTensorStorage raises keeping its rows
         if self.initialized and len(self):
             self._empty()
         rows, n0, tagged = state_rows(rows, state_dict, ndim=self.ndim, env_code=lambda x: self.env_code(x, create=True))
@@ -568,6 +570,50 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         self._store.restore_writers(self, force=True)
         self._bump_own()
         self.flush()
+
+    def holds(self, state_dict: dict[str, Any]) -> bool:
+        """Whether this store holds exactly the rows (and episode / run / env tags) of ``state_dict`` (a state of
+        this store, or of a copy of it), bit for bit, and as many.
+
+        Example:
+            >>> import tempfile, copy, torch
+            >>> from tensordict import TensorDict
+            >>> st = ZarrStorage(tempfile.mkdtemp() + "/m.zarr", 10, goal_conditioned=False)
+            >>> st.set(slice(0, 3), TensorDict({"obs": torch.arange(3.0)}, [3]))
+            >>> then = copy.deepcopy(st.state_dict())
+            >>> st.holds(then), st.set(1, TensorDict({"obs": torch.tensor(9.0)}, [])), st.holds(then)
+            (True, None, False)
+            >>> st.close()
+        """
+        rows = rows_of_state(state_dict.get("_storage"))
+        n = int(state_dict.get("_len", 0))
+        if n != len(self):
+            return False
+        if rows is None or not n:
+            return not len(self)
+        n0 = self._mirror.dim0(n)
+        mine = self._mirror.views[:n0]
+        tags = state_tags(state_dict.get("zarr") or {})
+        theirs = rows[:n0]
+        if tags is not None:
+            theirs = theirs.clone(False)
+            theirs.update(tags[:n0])
+        keys = set(mine.keys(True, True))
+        return keys == set(theirs.keys(True, True)) and all(
+            mine.get(k).shape == theirs.get(k).shape and torch.equal(mine.get(k), theirs.get(k)) for k in keys)
+
+    def _check_state(self, rows: TensorDictBase | None, state_dict: dict[str, Any]) -> None:
+        """Raises, naming what, unless this store can hold the rows of ``state_dict`` (checked before it empties)."""
+        n = int(state_dict.get("_len", 0))
+        if rows is None or not n:
+            return
+        n0 = -(-n // max(1, math.prod(rows.shape[1:self.ndim])))
+        if not self._store.unbounded and self.initialized and n0 > self._mirror.max_dim0:
+            raise ValueError(f"The state holds {n0} rows along the first dimension; the store at {self.path!r} "
+                             f"holds at most {self._mirror.max_dim0} (max_size={self.max_size}): load it into a "
+                             f"store of that capacity. Nothing was changed.")
+        if self.initialized and len(rows) >= n0:
+            check_rows(StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags), rows[:n0])
 
     def __reduce__(self):
         """Pickling gives a read-only handle on the same store, with every row written so far (this flushes)."""
