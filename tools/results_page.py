@@ -884,8 +884,8 @@ def pnp_proposer_60k(root: Path) -> str:
     return f"{head} That is {_ms_a_goal(summary):.0f} ms a proposed goal.\n\n{t}"
 
 
-PNP43_150K_CONTROL = Runs("SAC+HER from scratch", "pnp43-150k-control-s{}", seeds=(0, 1))
-PNP43_150K_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-150k-propose-s{}", seeds=(0, 1))
+PNP43_150K_CONTROL = Runs("SAC+HER from scratch", "pnp43-150k-control-s{}", seeds=(0, 1, 2))
+PNP43_150K_PROPOSER = Runs("SAC+HER from scratch + GoalProposer", "pnp43-150k-propose-s{}", seeds=(0, 1, 2))
 
 
 def pnp_proposer_150k(root: Path) -> str:
@@ -906,14 +906,17 @@ def pnp_proposer_150k(root: Path) -> str:
             f"{episode_level(c)}. The proposer's time a proposed goal: "
             f"{slash([_ms_a_goal(x) for x in summaries], lambda x: f'{x:.0f}')} ms (each run's last process).")
     every = 15000
-    rows = []
+    rows, curves = [], {}
+    for arm in (PNP43_150K_CONTROL, PNP43_150K_PROPOSER):
+        for seed in arm.seeds:
+            curves[arm.label, seed] = arm.curve(root, seed)
+    shown = sorted({f for curve in curves.values() for f in curve if f % every == 0})
     for arm in (PNP43_150K_CONTROL, PNP43_150K_PROPOSER):
         data = arm.read(root)
         for seed, cpu_s in zip(arm.seeds, data.cpu):
-            curve = arm.curve(root, seed)
-            shown = [f for f in sorted(curve) if f % every == 0]
-            rows.append([f"{arm.label}, seed {seed}", *[f2(curve[f]) for f in shown], f2(max(curve.values())),
-                         cpu(cpu_s)])
+            curve = curves[arm.label, seed]  # "-": no evaluation at that frame (a stop and resume passed it)
+            rows.append([f"{arm.label}, seed {seed}", *[f2(curve[f]) if f in curve else "-" for f in shown],
+                         f2(max(curve.values())), cpu(cpu_s)])
     t = table(["arm, seed", *[kf(f) for f in shown], "best", "CPU-s"], rows)
     return (f"{head} The table shows the evaluations every 15k frames (of one every 2.5k) and the best of them "
             f"all.\n\n{t}")
