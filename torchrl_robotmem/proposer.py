@@ -378,7 +378,10 @@ class GoalProposer(Transform):
     def transform_observation_spec(self, observation_spec):
         """Checks, once the env's goal spec is known, that the memory's goals have its size (if it has rows)."""
         in_key = self.in_keys[0]
-        column = self._source.column(self.goal_key)
+        try:
+            column = self._source.column(self.goal_key)
+        except FileNotFoundError:  # a memory path the run creates later: its first proposal checks the size
+            column = None
         if in_key in observation_spec.keys(True, True) and column is not None:
             shape = observation_spec[in_key].shape
             batch = self.parent.batch_size if self.parent is not None else torch.Size([])

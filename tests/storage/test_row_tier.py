@@ -609,3 +609,44 @@ def test_a_negative_index_into_a_memory_without_a_capacity_is_refused_and_change
     with ZarrStorage(path) as again:
         TensorDictReplayBuffer(storage=again).extend(_rows(40, 45))
         assert torch.equal(again["obs"], _rows(0, 45)["obs"])
+
+
+def test_a_checkpoint_of_a_store_with_a_constant_column_restores(tmp_path):
+    """Found by a review of the check before a load: it checked the state's rows without their constant columns
+    (the write adds them), and refused a checkpoint of a store holding one."""
+    path = str(tmp_path / "m.zarr")
+    rb = TensorDictReplayBuffer(storage=ZarrStorage(path, 50, goal_conditioned=False), batch_size=2)
+    rb.extend(_obs(0, 4, label="x"))
+    rb.dumps(tmp_path / "ckpt")
+    rb.extend(_obs(10, 2, label="x"))
+    rb.loads(tmp_path / "ckpt")
+    assert len(rb) == 4 and rb.storage[:]["obs"].flatten().tolist() == [0.0, 1.0, 2.0, 3.0]
+    other = ZarrStorage(str(tmp_path / "b.zarr"), 50, goal_conditioned=False)
+    other.set(torch.arange(2), _obs(20, 2, label="x"))
+    other.load_state_dict(rb.storage.state_dict())
+    assert len(other) == 4 and other[:]["label"] == "x"
+    other.close()
+    rb.storage.close()
+
+
+def test_a_store_holding_nan_holds_its_own_unchanged_state(tmp_path):
+    """Found by a review: NaN != NaN made an unchanged store look changed: a read-only handle refused to load its
+    own state, and a writer rewrote every row."""
+    path = str(tmp_path / "m.zarr")
+    with ZarrStorage(path, 50, goal_conditioned=False) as st:
+        st.set(torch.arange(4), TensorDict({"obs": torch.tensor([[0.0], [float("nan")], [2.0], [3.0]])}, [4]))
+    with ZarrStorage(path, read_only=True) as ro:
+        then = copy.deepcopy(ro.state_dict())
+        assert ro.holds(then)
+        ro.load_state_dict(then)  # only the writer position: a reader may do it
+        assert len(ro) == 4
+
+
+def test_a_local_path_with_a_double_colon_in_a_folder_name_is_a_path(tmp_path):
+    """Found by a review: any '::' made a name an fsspec chain, refused (naming the wrong path)."""
+    folder = tmp_path / "run::2024"
+    folder.mkdir()
+    with ZarrStorage(str(folder / "m.zarr"), 10, goal_conditioned=False) as st:
+        st.set(torch.arange(3), _obs(0, 3))
+    with ZarrStorage(str(folder / "m.zarr"), read_only=True) as ro:
+        assert len(ro) == 3

@@ -346,3 +346,13 @@ def test_the_recipe_switch_runs_with_her_and_reports_the_proposals(tmp_path):
     assert (goals[100:] == goals[100]).all()
     reward = make_reward_fn(ENV)(stored[:150])
     assert torch.equal(stored["next", "reward"][:150], reward.to(stored["next", "reward"].dtype))
+
+
+def test_the_env_spec_is_read_before_the_run_creates_its_memory(tmp_path):
+    """Found by a review: the goal-size check at the spec opened a path memory the run had not created yet."""
+    path = str(tmp_path / "m.zarr")
+    env = make_env(ENV, seed=0, transforms=[GoalProposer(path, ENV, warmup_rows=10, seed=0)])
+    assert env.observation_spec["observation"].shape == (10,)  # sizing a policy, before the memory exists
+    storage = ZarrStorage(path, 1000, env=ENV)
+    assert env.rollout(3)["next", "reward"].shape == (3, 1)
+    storage.close()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import re
 import stat
 import time
 from pathlib import Path
@@ -110,6 +111,10 @@ def is_url(path: str) -> bool:
     return "://" in path
 
 
+#: an fsspec chain: a protocol name, then ``::`` (a local path may hold ``::`` in a folder name)
+_CHAIN = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*::")
+
+
 def normalize_path(path: str | os.PathLike | Any) -> str | Any:
     """The canonical name of a store: an absolute local path, a URL, or the Store itself.
 
@@ -119,7 +124,7 @@ def normalize_path(path: str | os.PathLike | Any) -> str | Any:
     if not isinstance(path, (str, os.PathLike)):
         return path
     spath = os.fspath(path)
-    if "::" in spath:  # an fsspec chain ("simplecache::file://..."): refused where its last link is a local path
+    if _CHAIN.match(spath):  # an fsspec chain ("simplecache::file://..."): refused where its last link is local
         chain, inner = spath.rsplit("::", 1)
         if not is_url(inner) or inner.startswith(("file://", "local://")):
             raise ChainedLocalPathError(spath, chain, str(Path(inner.split("://", 1)[-1]).expanduser().absolute()))

@@ -79,7 +79,7 @@ class ZarrCheckpointer(StorageCheckpointerBase):
         source = None
         if meta["store"] == storage.path:
             if [meta.get("len"), meta.get("write_count")] == [len(storage), storage.write_count]:
-                source = self._open_copy(path, meta)
+                source = self._open_copy(storage, path, meta)
                 if source is None or storage.holds(source.state_dict()):  # as the checkpoint left it (in place
                     storage.resume_writers()  # writes and an emptied-and-refilled store have the same counts)
                     return
@@ -100,15 +100,13 @@ class ZarrCheckpointer(StorageCheckpointerBase):
                 f"ZarrStorage({meta['store']!r}) to resume from it."
             )
         if source is None:
-            source = self._open_copy(path, meta)
+            source = self._open_copy(storage, path, meta)
         storage.load_state_dict(source.state_dict())
 
-    def _open_copy(self, path: Path, meta: dict) -> Any:
+    def _open_copy(self, storage: Any, path: Path, meta: dict) -> Any:
         """The checkpoint's copy of the store, read-only (``None``: it holds none, a URL store's checkpoint)."""
         if not meta.get("copy"):
             return None
         if self.open_copy is not None:
             return self.open_copy(path / meta["copy"])
-        from .zarr_storage import ZarrStorage
-
-        return ZarrStorage(path / meta["copy"], read_only=True)
+        return type(storage)(path / meta["copy"], read_only=True)

@@ -24,7 +24,7 @@ from .checkpointer import ZarrCheckpointer
 from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
 from .planner import StoreView, check_rows, completes_chunk, counts_from_the_end, cursor_rows, plan_write, write_span
-from .schema import DataKind
+from .schema import DataKind, with_constants
 from .state import rows_of_state, shares_memory, source_kind, state_rows, state_tags
 from .store import MemoryStore
 from .tags import TAG_KEYS, UNKNOWN_ENV
@@ -599,8 +599,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             theirs = theirs.clone(False)
             theirs.update(tags[:n0])
         keys = set(mine.keys(True, True))
-        return keys == set(theirs.keys(True, True)) and all(
-            mine.get(k).shape == theirs.get(k).shape and torch.equal(mine.get(k), theirs.get(k)) for k in keys)
+        return keys == set(theirs.keys(True, True)) and all(_same(mine.get(k), theirs.get(k)) for k in keys)
 
     def _check_state(self, rows: TensorDictBase | None, state_dict: dict[str, Any]) -> None:
         """Raises, naming what, unless this store can hold the rows of ``state_dict`` (checked before it empties)."""
@@ -613,7 +612,10 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                              f"holds at most {self._mirror.max_dim0} (max_size={self.max_size}): load it into a "
                              f"store of that capacity. Nothing was changed.")
         if self.initialized and len(rows) >= n0:
-            check_rows(StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags), rows[:n0])
+            body, constants = rows[:n0], (state_dict.get("zarr") or {}).get("constants")
+            if constants:  # the write carries them (state_rows): so does the check
+                body = with_constants(body.clone(False), constants)
+            check_rows(StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags), body)
 
     def __reduce__(self):
         """Pickling gives a read-only handle on the same store, with every row written so far (this flushes)."""
@@ -629,6 +631,16 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         size = self.max_size if self.bounded else None
         return (f"{type(self).__name__}(path={self.path!r}, len={len(self)}, max_size={size}, "
                 f"read_only={self.read_only}, envs={list(self._tags.env_names)})")
+
+
+def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Equal shapes, dtypes and values, NaN where the other has NaN (a row holding NaN is the same row)."""
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    if not a.dtype.is_floating_point:
+        return torch.equal(a, b)
+    nan = a.isnan()
+    return torch.equal(nan, b.isnan()) and torch.equal(a.masked_fill(nan, 0), b.masked_fill(nan, 0))
 
 
 def _open_copy(path) -> ZarrStorage:
