@@ -81,7 +81,8 @@ class ZarrCheckpointer(StorageCheckpointerBase):
             if [meta.get("len"), meta.get("write_count")] == [len(storage), storage.write_count]:
                 source = self._open_copy(storage, path, meta)
                 if source is None or storage.holds(source.state_dict()):  # as the checkpoint left it (in place
-                    storage.resume_writers()  # writes and an emptied-and-refilled store have the same counts)
+                    _close(source)  # writes and an emptied-and-refilled store have the same counts)
+                    storage.resume_writers()
                     return
             if not meta.get("copy"):
                 raise ValueError(
@@ -101,7 +102,10 @@ class ZarrCheckpointer(StorageCheckpointerBase):
             )
         if source is None:
             source = self._open_copy(storage, path, meta)
-        storage.load_state_dict(source.state_dict())
+        try:
+            storage.load_state_dict(source.state_dict())
+        finally:
+            _close(source)
 
     def _open_copy(self, storage: Any, path: Path, meta: dict) -> Any:
         """The checkpoint's copy of the store, read-only (``None``: it holds none, a URL store's checkpoint)."""
@@ -110,3 +114,11 @@ class ZarrCheckpointer(StorageCheckpointerBase):
         if self.open_copy is not None:
             return self.open_copy(path / meta["copy"])
         return type(storage)(path / meta["copy"], read_only=True)
+
+
+def _close(source: Any) -> None:
+    """Closes a checkpoint's copy opened by ``loads`` (a storage without ``close``, or ``None``: nothing)."""
+    close = getattr(source, "close", None)
+    if close is not None:
+        close()
+
