@@ -46,6 +46,10 @@ _OPEN_WRITERS: dict[str, weakref.ref] = {}
 os.register_at_fork(after_in_child=_OPEN_WRITERS.clear)
 
 
+#: times a reader reads the record again when the journal it named was gone (a writer committing meanwhile)
+_JOURNAL_RACE_TRIES = 20
+
+
 class StoreHandle:
     """One open store: path, Zarr store and group, writer lock, and its place in the in-process handover.
 
@@ -194,9 +198,9 @@ class StoreHandle:
         decode = not self.read_only and (bool(attrs.get("journal")) or grows)
         if decode and self.local_dir is not None:  # every chunk below the length is read: walk their folders first
             _backend.refuse_links(self.local_dir, self.path, chunks=None)
-        return integrity.check_open(self.group, attrs, store=self.store, local_dir=self.local_dir, path=self.path,
-                                    read_only=self.read_only, on_damage=on_damage, served=served, mapped=mapped,
-                                    decode=decode)
+        self.group, attrs = self._checked(self.group, attrs, on_damage=on_damage, served=served, mapped=mapped,
+                                          decode=decode)
+        return attrs
 
     def current_record(self) -> dict:
         """The commit record as the store holds it now (read again; the handle is unchanged)."""
@@ -212,9 +216,26 @@ class StoreHandle:
         group = _backend.open_group(self.store, read_only=True)
         attrs = group.attrs.asdict()
         self.check_format(attrs)
-        attrs = integrity.check_open(group, attrs, store=self.store, local_dir=self.local_dir, path=self.path,
-                                     read_only=True, on_damage=on_damage, served=served, mapped=mapped)
-        return group, attrs
+        return self._checked(group, attrs, on_damage=on_damage, served=served, mapped=mapped)
+
+    def _checked(self, group: Any, attrs: dict, **kwargs) -> tuple[Any, dict]:
+        """``(group, record)`` checked by :func:`integrity.check_open`. A reader whose record named a pending
+        journal that is gone by the time it reads it (the writer finished that commit and removed it) reads the
+        newer record and checks again; damage that stays under one record raises."""
+        for _ in range(_JOURNAL_RACE_TRIES):
+            try:
+                return group, integrity.check_open(group, attrs, store=self.store, local_dir=self.local_dir,
+                                                   path=self.path, read_only=self.read_only, **kwargs)
+            except IntegrityError as err:
+                if not self.read_only or not any(p.kind == "journal" for p in err.problems):
+                    raise
+                fresh = _backend.open_group(self.store, read_only=True)
+                if fresh.attrs.asdict() == attrs:  # the same record: the journal is damaged
+                    raise
+                group, attrs = fresh, fresh.attrs.asdict()
+                self.check_format(attrs)
+        return group, integrity.check_open(group, attrs, store=self.store, local_dir=self.local_dir, path=self.path,
+                                           read_only=self.read_only, **kwargs)
 
     def pending_record(self, attrs: dict) -> dict | None:
         """The record once a pending journal is applied, or ``None`` if none is pending.

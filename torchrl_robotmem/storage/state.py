@@ -52,7 +52,7 @@ def state_rows(rows: TensorDictBase | None, state_dict: dict[str, Any], *, ndim:
     n = int(state_dict.get("_len", 0))
     if not n or rows is None:
         return None, 0, False
-    n0 = -(-n // max(1, math.prod(rows.shape[1:ndim])))
+    n0 = state_dim0(rows, n, ndim=ndim)
     rows = rows[:n0]
     tags = state_tags(meta)
     if tags is not None:
@@ -68,6 +68,16 @@ def state_rows(rows: TensorDictBase | None, state_dict: dict[str, Any], *, ndim:
     if meta.get("constants"):
         rows = with_constants(rows.clone(False), meta["constants"])
     return rows, n0, tags is not None
+
+
+def state_dim0(rows: TensorDictBase, n: int, *, ndim: int) -> int:
+    """First-dimension rows that ``n`` transitions of a state's ``rows`` span (a storage of ``ndim`` dims).
+
+    Example:
+        >>> state_dim0(TensorDict({"a": torch.zeros(4, 3)}, [4, 3]), 7, ndim=2)
+        3
+    """
+    return -(-int(n) // max(1, math.prod(rows.shape[1:ndim])))
 
 
 def state_tags(meta: dict[str, Any]) -> TensorDictBase | None:

@@ -6,7 +6,6 @@ The TorchRL ``Storage`` contract, composing the parts of this package; ``docs/st
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import sys
 import weakref
@@ -25,7 +24,7 @@ from .format import RESERVED, UNBOUNDED, UNBOUNDED_SIZE
 from .indices import HostIndices
 from .planner import StoreView, check_rows, completes_chunk, counts_from_the_end, cursor_rows, plan_write, write_span
 from .schema import DataKind, with_constants
-from .state import rows_of_state, shares_memory, source_kind, state_rows, state_tags
+from .state import rows_of_state, shares_memory, source_kind, state_dim0, state_rows, state_tags
 from .store import MemoryStore
 from .tags import TAG_KEYS, UNKNOWN_ENV
 
@@ -606,7 +605,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         n = int(state_dict.get("_len", 0))
         if rows is None or not n:
             return
-        n0 = -(-n // max(1, math.prod(rows.shape[1:self.ndim])))
+        n0 = state_dim0(rows, n, ndim=self.ndim)
         if not self._store.unbounded and self.initialized and n0 > self._mirror.max_dim0:
             raise ValueError(f"The state holds {n0} rows along the first dimension; the store at {self.path!r} "
                              f"holds at most {self._mirror.max_dim0} (max_size={self.max_size}): load it into a "
