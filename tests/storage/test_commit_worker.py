@@ -6,11 +6,13 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
 import pytest
 import torch
+import zarr
 from conftest import make_transitions
 from torchrl.data import ReplayBuffer
 
@@ -152,3 +154,39 @@ def test_the_worker_dies_with_its_parent_and_the_store_reopens(tmp_path):
     keys = ["observation", "action", "achieved_goal", ("next", "observation"), ("next", "reward")]
     assert _rows_equal(st.get(torch.arange(n)).select(*keys), data.select(*keys))
     st.close()
+
+
+@pytest.mark.parametrize("commit_process", [False, True], ids=["in-process", "worker"])
+def test_a_row_rewritten_while_its_complete_chunk_is_copied_reaches_the_disk(tmp_path, monkeypatch, commit_process):
+    """Complete chunks past the record are copied after the engine's lock is released
+    (``RamMirror.copy_chunk(copy=False)``, then ``copied``): a write that lands during that copy
+    marks its chunk dirty again, so the rows on disk after ``flush`` are the newest, not the copy's."""
+    from torchrl_robotmem.storage.mirror import RamMirror
+
+    path = tmp_path / "m.zarr"
+    # no timer commit in the test's time: the complete chunks are committed on their own, unlocked
+    st = ZarrStorage(path, 64, chunk_rows=8, commit_interval=3600.0, commit_process=commit_process)
+    if commit_process:
+        _wait_for_worker(st)
+    rb = ReplayBuffer(storage=st, batch_size=4)
+    copied, real = threading.Event(), RamMirror.copied
+    newer = make_transitions(1, start=1000)
+
+    def a_write_lands_during_the_copy(snapshot):
+        out = real(snapshot)  # the copy holds row 3 as first written ...
+        if not copied.is_set():
+            rb[3] = newer[0]  # ... and the row changes before the copy reaches the disk
+            copied.set()
+        return out
+
+    monkeypatch.setattr(RamMirror, "copied", staticmethod(a_write_lands_during_the_copy))
+    rb.extend(make_transitions(20))  # chunks 0 and 1 complete, chunk 2 not
+    assert copied.wait(120), "the complete chunks were never committed on their own"
+    st.flush()
+    st.close()
+    expected = make_transitions(20)
+    expected[3] = newer[0]
+    group = zarr.open_group(path, mode="r")  # the chunks themselves (a reopen would map the sealed row file)
+    for key, value in expected.items(True, True):
+        column = key if isinstance(key, str) else "/".join(key)
+        assert (torch.from_numpy(group[column][:20]) == value).all(), column

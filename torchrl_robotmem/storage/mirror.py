@@ -3,7 +3,8 @@
 Every stored column of a row lives in one packed ``uint8`` buffer
 (:class:`~torchrl_robotmem.storage.layout.PackedLayout`): a sampled batch is one
 gather of whole rows, and a chunk the commit engine writes is one ``memcpy``
-(:meth:`RamMirror.copy_chunk`, taken under the engine's lock) split per array
+(:meth:`RamMirror.copy_chunk`, taken under the engine's lock, or after it for a
+complete chunk no record covers yet: :meth:`RamMirror.copied`) split per array
 later (:meth:`RamMirror.chunk_arrays`, outside it). The mirror also reads a
 store's rows into RAM (:meth:`RamMirror.load`), including a reader's re-read
 of chunks a writer overwrote during the load.
@@ -370,20 +371,35 @@ class RamMirror:
 
     # -- what the commit engine reads ------------------------------------------------
 
-    def copy_chunk(self, c: int) -> tuple[torch.Tensor, PackedLayout]:
+    def copy_chunk(self, c: int, *, copy: bool = True) -> tuple[torch.Tensor, PackedLayout]:
         """A snapshot of chunk ``c``: ONE copy of its packed rows (taken under the engine's lock).
 
         The per-array split happens later, in :meth:`chunk_arrays`, outside the
         lock, so a foreground ``set`` waits for a memcpy, not for 30 column copies.
+
+        ``copy=False`` (a chunk all of whose rows are written): the chunk's rows themselves, a view
+        the caller copies with :meth:`copied` once it has released the lock. Only for rows no commit
+        record covers yet, whose every later write marks the chunk dirty again: a copy torn by such a
+        write is written again before any record names its rows (``docs/storage.md``). The views stay
+        readable however the rows move meanwhile (a growth or a new column maps a new file and keeps
+        the old mapping alive; no row file shrinks while mapped).
         """
         lo = c * self.chunk_rows
         hi = min(lo + self.chunk_rows, self.max_dim0)
         valid = max(0, min(hi, self.filled()) - lo)
         self.fill_before_write(slice(lo, hi))  # a writer's fill: the chunk's rows read first (once)
+        if not copy and valid == hi - lo:
+            return self._packed[lo:hi], self.layout
         packed = self._packed[lo:hi].to("cpu", copy=True)  # a CUDA mirror (device="cuda") is written from host memory
         if valid < hi - lo:
             packed[valid:] = 0  # rows past len reach the disk as zeros
         return packed, self.layout
+
+    @staticmethod
+    def copied(snapshot: tuple[torch.Tensor, PackedLayout]) -> tuple[torch.Tensor, PackedLayout]:
+        """The rows of a :meth:`copy_chunk` ``(copy=False)`` snapshot, copied (to host memory)."""
+        packed, layout = snapshot
+        return packed.to("cpu", copy=True), layout
 
     def chunk_arrays(self, snapshot: tuple[torch.Tensor, PackedLayout]) -> dict[str, np.ndarray]:
         """The per-array contents of a chunk snapshot (see :meth:`copy_chunk`)."""
