@@ -190,3 +190,39 @@ def test_a_row_rewritten_while_its_complete_chunk_is_copied_reaches_the_disk(tmp
     for key, value in expected.items(True, True):
         column = key if isinstance(key, str) else "/".join(key)
         assert (torch.from_numpy(group[column][:20]) == value).all(), column
+
+
+def test_a_complete_chunk_holding_committed_rows_is_copied_under_the_lock(tmp_path, monkeypatch):
+    """Found by a review: a chunk some of whose rows a record already covers (a timer commit of the chunk
+    half full, then the rest written) was copied after the lock too, so an in-place write of its committed rows
+    landing during the copy reached the disk half-done, without the journal, under the old record."""
+    import torchrl_robotmem.storage.commit as commit_module
+    from torchrl_robotmem.storage.mirror import RamMirror
+
+    path = tmp_path / "m.zarr"
+    st = ZarrStorage(path, 64, chunk_rows=8, commit_interval=3600.0, commit_process=False)
+    rb = ReplayBuffer(storage=st, batch_size=4)
+    rb.extend(make_transitions(5))
+    st.flush()  # the record covers rows 0-4 of chunk 0
+    real_copy, real_commit, chunk_written = RamMirror.copied, commit_module.commit_protocol, threading.Event()
+
+    def overtaken(snapshot):  # the memcpy, with one in-place write of rows 1 and 3 landing half-way through
+        packed, layout = snapshot
+        out = torch.empty(packed.shape, dtype=packed.dtype)
+        out[:2] = packed[:2]
+        rb[torch.tensor([1, 3])] = make_transitions(2, start=1000)
+        out[2:] = packed[2:]
+        return out, layout
+
+    def seen(group, arrays, write, payload, meta, **kwargs):
+        real_commit(group, arrays, write, payload, meta, **kwargs)
+        if meta is None:
+            chunk_written.set()
+
+    monkeypatch.setattr(RamMirror, "copied", staticmethod(overtaken))
+    monkeypatch.setattr(commit_module, "commit_protocol", seen)
+    rb.extend(make_transitions(3, start=5))  # chunk 0 complete: committed on its own, without a record
+    assert chunk_written.wait(120), "the complete chunk was never committed on its own"
+    on_disk = zarr.open_group(path, mode="r")["observation"][:5]  # the record still names 5 rows, as before
+    assert (torch.from_numpy(on_disk) == make_transitions(5)["observation"]).all()
+    st.close()

@@ -530,6 +530,43 @@ def test_a_rollback_to_a_state_with_the_same_counts_restores_its_rows_as_lazy_te
         assert again["obs"].flatten().tolist() == [0.0, 1.0, 2.0, 3.0]
 
 
+_ROLLBACK_KILLED = """
+import copy, os, signal, sys, torch
+from tensordict import TensorDict
+from torchrl.data import TensorDictReplayBuffer
+from torchrl_robotmem import ZarrStorage
+path, max_size = sys.argv[1], (int(sys.argv[2]) or None)
+obs = lambda lo, n: TensorDict({"obs": torch.arange(lo, lo + n, dtype=torch.float32).unsqueeze(-1)}, [n])
+st = ZarrStorage(path, max_size, goal_conditioned=False)
+rb = TensorDictReplayBuffer(storage=st, batch_size=2)
+rb.extend(obs(0, 30))
+state = copy.deepcopy(rb.state_dict())
+rb.extend(obs(100, 30))
+st.flush()  # 60 rows durable
+real = ZarrStorage._set
+def then_killed(self, *args, **kwargs):  # the state's rows written (in RAM), the load not finished
+    real(self, *args, **kwargs)
+    os.kill(os.getpid(), signal.SIGKILL)
+ZarrStorage._set = then_killed
+rb.load_state_dict(state)
+"""
+
+
+@pytest.mark.parametrize("max_size", [64, None], ids=["ring", "unbounded"])
+def test_a_rollback_killed_before_it_ends_leaves_the_rows_of_before_it(tmp_path, max_size):
+    """``load_state_dict`` that replaces the rows (a rollback) emptied the store durably first, then wrote the
+    state's rows: a SIGKILL in between left an empty memory. The whole replacement is now one commit."""
+    import subprocess
+    import sys
+
+    path = str(tmp_path / "m.zarr")
+    proc = subprocess.run([sys.executable, "-c", _ROLLBACK_KILLED, path, str(max_size or 0)], capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == -9, proc.stderr[-2000:]
+    with ZarrStorage(path, read_only=True) as back:
+        assert back["obs"].flatten().tolist() == list(range(30)) + list(range(100, 130))
+
+
 @pytest.mark.parametrize("case", ["a column added since", "other columns", "more rows than the capacity"])
 def test_a_state_the_store_cannot_hold_is_refused_before_anything_changes(tmp_path, case):
     """Found by a review: load_state_dict emptied the store (durably) before the state's rows were checked."""

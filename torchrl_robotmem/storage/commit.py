@@ -327,9 +327,12 @@ class CommitEngine:
             chunks = sorted(self.dirty) if everything else sorted(self._complete_chunks())
             try:  # a snapshot or record that raises (a chunk a writer's fill cannot read): nothing was taken, and
                 # the error is the commit's (a writer thread that died here left flush() waiting forever)
-                # Complete chunks past the record are copied after the lock is released: the foreground
-                # waited here for their memcpy, about 2 ms a 4 MiB chunk (see RamMirror.copy_chunk)
-                snapshots = {c: mirror.copy_chunk(c, copy=everything) for c in chunks}
+                # Complete chunks wholly past the record are copied after the lock is released: the
+                # foreground waited here for their memcpy, about 2 ms a 4 MiB chunk (RamMirror.copy_chunk).
+                # A chunk the record reaches into (a timer commit of it half full) is copied here: a write
+                # of its committed rows during the copy would reach the disk without the journal
+                unlocked = set() if everything else {c for c in chunks if c * mirror.chunk_rows >= committed0}
+                snapshots = {c: mirror.copy_chunk(c, copy=c not in unlocked) for c in chunks}
                 meta = self.record() if everything else None
             except BaseException as err:
                 self._failed(err, target)  # (the condition's lock is reentrant)
@@ -344,8 +347,7 @@ class CommitEngine:
                 self.first_dirty_time = None
             self.inflight += 1
         try:
-            if not everything:
-                snapshots = {c: mirror.copied(snap) for c, snap in snapshots.items()}
+            snapshots = {c: mirror.copied(snap) if c in unlocked else snap for c, snap in snapshots.items()}
             with self._route_lock:  # an in-process commit and a switch to the worker never overlap
                 via_worker = self._use_worker()
                 if not via_worker:

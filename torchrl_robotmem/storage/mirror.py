@@ -378,9 +378,9 @@ class RamMirror:
         lock, so a foreground ``set`` waits for a memcpy, not for 30 column copies.
 
         ``copy=False`` (a chunk all of whose rows are written): the chunk's rows themselves, a view
-        the caller copies with :meth:`copied` once it has released the lock. Only for rows no commit
-        record covers yet, whose every later write marks the chunk dirty again: a copy torn by such a
-        write is written again before any record names its rows (``docs/storage.md``). The views stay
+        the caller copies with :meth:`copied` once it has released the lock. Only for a chunk no row of
+        which a commit record covers yet, whose every later write marks it dirty again: a copy torn by
+        such a write is written again before any record names its rows (``docs/storage.md``). The views stay
         readable however the rows move meanwhile (a growth or a new column maps a new file and keeps
         the old mapping alive; no row file shrinks while mapped).
         """
