@@ -204,7 +204,7 @@ def test_a_complete_chunk_holding_committed_rows_is_copied_under_the_lock(tmp_pa
     rb = ReplayBuffer(storage=st, batch_size=4)
     rb.extend(make_transitions(5))
     st.flush()  # the record covers rows 0-4 of chunk 0
-    real_copy, real_commit, chunk_written = RamMirror.copied, commit_module.commit_protocol, threading.Event()
+    real_commit, chunk_written = commit_module.commit_protocol, threading.Event()
 
     def overtaken(snapshot):  # the memcpy, with one in-place write of rows 1 and 3 landing half-way through
         packed, layout = snapshot

@@ -28,6 +28,7 @@ confirmed is written again from RAM.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -88,6 +89,7 @@ class CommitEngine:
         self.flush_req = 0
         self.flush_done = 0
         self.inflight = 0  # commits whose payload left the dirty set but is not written yet
+        self.holds = 0  # blocks of writes that reach the disk in one commit (held): no commit of its own starts
         self.arrays: dict[str, Any] = {}  # zarr arrays by path, opened once
         self.plans: dict[str, Any] = {}  # how each array's chunks are written (fast_write.write_chunks' cache)
         self.last_set_time = 0.0
@@ -131,6 +133,23 @@ class CommitEngine:
 
     def mark_meta_dirty(self) -> None:
         self.meta_dirty = True
+
+    @contextlib.contextmanager
+    def held(self):
+        """A block of writes that reaches the disk in one commit: the commits the engine starts on its own (the
+        timer, complete chunks, a write's commit without the thread) wait for its end; a ``flush()`` does not.
+
+        ``ZarrStorage.load_state_dict`` replaces the rows inside one, then flushes: a process killed on the way
+        leaves the rows of before it, never an emptied or half-replaced memory.
+        """
+        with self.cv:
+            self.holds += 1
+        try:
+            yield
+        finally:
+            with self.cv:
+                self.holds -= 1
+                self.cv.notify_all()
 
     def reset_arrays(self) -> None:
         self.arrays.clear()
@@ -254,7 +273,7 @@ class CommitEngine:
         foreground a GIL hand-over each time.
         """
         if not self.background:
-            self._commit(everything=True)
+            self._commit(everything=True, requested=False)
             return
         with self.cv:
             started = self.thread is not None or self._start_thread()
@@ -280,6 +299,9 @@ class CommitEngine:
                         self.thread = None
                         return
                     flush = self.flush_req > self.flush_done
+                    if self.holds and not flush:
+                        self.cv.wait()  # the hold's end notifies
+                        continue
                     pending = bool(self.dirty) or self.meta_dirty
                     timer = pending and (
                         self.first_dirty_time is None
@@ -306,17 +328,20 @@ class CommitEngine:
                         self.thread = None  # idle: let the storage be collected
                         return
                     self.cv.wait(max(0.0, self.commit_interval - (time.monotonic() - self.first_dirty_time)))
-            self._commit(everything=flush or timer)
+            self._commit(everything=flush or timer, requested=flush)
 
-    def _commit(self, *, everything: bool) -> None:
+    def _commit(self, *, everything: bool, requested: bool = True) -> None:
         """Writes dirty chunks (all of them, or only complete ones), then the metadata.
 
         If the worker fails on the way (dead, silent), the engine falls back to
         writing in-process and commits everything again; any other failure
-        leaves the chunks dirty and is raised to the foreground.
+        leaves the chunks dirty and is raised to the foreground. A commit not ``requested`` by a
+        flush is not made under a hold (:meth:`held`: it began after the thread decided to commit).
         """
         mirror = self.mirror
         with self.cv:
+            if self.holds and not requested:
+                return
             target = self.flush_req
             # Overwriting committed rows (a wrapping ring) commits everything with
             # its metadata, through the journal: rows on disk never lead the

@@ -427,11 +427,15 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
 
     def _empty(self) -> None:
         self._store.check_writable()
+        self._reset_rows()
+        self.flush()
+
+    def _reset_rows(self) -> None:
+        """The rows emptied in RAM (the next commit records it)."""
         with lifecycle.critical(), self._own_write(), self._engine.cv:
             super()._empty()
             self._store.reset()
             self._store.follow_writers(self)  # the writer emptied first (it may keep its count)
-        self.flush()
 
     # -- reads ---------------------------------------------------------------------------------
 
@@ -557,17 +561,23 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 )
         self._store.check_writable()
         self._check_state(rows, state_dict)  # before anything changes: LazyTensorStorage raises keeping its rows
-        if self.initialized and len(self):
-            self._empty()
         rows, n0, tagged = state_rows(rows, state_dict, ndim=self.ndim, env_code=lambda x: self.env_code(x, create=True))
-        if rows is not None:
-            kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
-            # written as a TensorDict, read back as the source's kind (or the store's)
-            self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tagged)
-            self._set_last_cursor(None)  # as TensorStorage.load_state_dict leaves it: no last write to slice from
-            self._store.load_position(meta, rows, n0, tagged)
-        self._store.restore_writers(self, force=True)
-        self._bump_own()
+        if self.initialized and self._store.unbounded:
+            with lifecycle.critical():
+                self._fit(slice(0, n0), n0)  # grown first (committing the rows of now): no commit inside the hold
+        # The rows replaced in ONE commit (journalled where it rewrites committed rows): a process killed before
+        # the flush below leaves the rows of before the load, never an emptied or half-replaced memory
+        with lifecycle.critical(), self._engine.held():
+            if self.initialized and len(self):
+                self._reset_rows()
+            if rows is not None:
+                kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
+                # written as a TensorDict, read back as the source's kind (or the store's)
+                self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tagged)
+                self._set_last_cursor(None)  # as TensorStorage.load_state_dict leaves it: no last write to slice from
+                self._store.load_position(meta, rows, n0, tagged)
+            self._store.restore_writers(self, force=True)
+            self._bump_own()
         self.flush()
 
     def holds(self, state_dict: dict[str, Any]) -> bool:
