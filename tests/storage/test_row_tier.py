@@ -535,12 +535,17 @@ import copy, os, signal, sys, torch
 from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 from torchrl_robotmem import ZarrStorage
-path, max_size = sys.argv[1], (int(sys.argv[2]) or None)
+from torchrl.data import LazyTensorStorage
+path, max_size, source = sys.argv[1], (int(sys.argv[2]) or None), sys.argv[3]
 obs = lambda lo, n: TensorDict({"obs": torch.arange(lo, lo + n, dtype=torch.float32).unsqueeze(-1)}, [n])
 st = ZarrStorage(path, max_size, goal_conditioned=False)
 rb = TensorDictReplayBuffer(storage=st, batch_size=2)
 rb.extend(obs(0, 30))
 state = copy.deepcopy(rb.state_dict())
+if source == "a state with a column the store lacks":
+    other = LazyTensorStorage(30)
+    other.set(torch.arange(30), TensorDict({"obs": -obs(0, 30)["obs"], "extra": torch.ones(30, 1)}, [30]))
+    state = other.state_dict()
 rb.extend(obs(100, 30))
 st.flush()  # 60 rows durable
 real = ZarrStorage._set
@@ -548,20 +553,22 @@ def then_killed(self, *args, **kwargs):  # the state's rows written (in RAM), th
     real(self, *args, **kwargs)
     os.kill(os.getpid(), signal.SIGKILL)
 ZarrStorage._set = then_killed
-rb.load_state_dict(state)
+(st if source == "a state with a column the store lacks" else rb).load_state_dict(state)
 """
 
 
+@pytest.mark.parametrize("source", ["the store's own older state", "a state with a column the store lacks"])
 @pytest.mark.parametrize("max_size", [64, None], ids=["ring", "unbounded"])
-def test_a_rollback_killed_before_it_ends_leaves_the_rows_of_before_it(tmp_path, max_size):
+def test_a_rollback_killed_before_it_ends_leaves_the_rows_of_before_it(tmp_path, max_size, source):
     """``load_state_dict`` that replaces the rows (a rollback) emptied the store durably first, then wrote the
-    state's rows: a SIGKILL in between left an empty memory. The whole replacement is now one commit."""
+    state's rows: a SIGKILL in between left an empty memory. The whole replacement is now one commit. Found by a
+    review of that fix: a state adding a column committed the emptied store while adding it (now added first)."""
     import subprocess
     import sys
 
     path = str(tmp_path / "m.zarr")
-    proc = subprocess.run([sys.executable, "-c", _ROLLBACK_KILLED, path, str(max_size or 0)], capture_output=True,
-                          text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "-c", _ROLLBACK_KILLED, path, str(max_size or 0), source],
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == -9, proc.stderr[-2000:]
     with ZarrStorage(path, read_only=True) as back:
         assert back["obs"].flatten().tolist() == list(range(30)) + list(range(100, 130))

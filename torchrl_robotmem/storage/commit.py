@@ -280,7 +280,7 @@ class CommitEngine:
             if self.thread is not None and notify:
                 self.cv.notify_all()
         if not started:  # no new thread at interpreter exit (see start_thread): this one commits
-            self._commit(everything=True)
+            self._commit(everything=True, requested=False)
 
     def _start_thread(self) -> bool:
         self.thread = start_thread(self._loop, f"ZarrStorage-writer({self.name})")
@@ -394,7 +394,7 @@ class CommitEngine:
                 if not self.background:
                     raise
                 return
-            self._commit(everything=True)
+            self._commit(everything=True, requested=requested)  # under a hold, only a flush's commit goes on
             return
         except BaseException as err:  # surfaced to the foreground on its next call
             self._undo_take(taken)

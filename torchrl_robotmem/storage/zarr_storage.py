@@ -562,16 +562,15 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         self._store.check_writable()
         self._check_state(rows, state_dict)  # before anything changes: LazyTensorStorage raises keeping its rows
         rows, n0, tagged = state_rows(rows, state_dict, ndim=self.ndim, env_code=lambda x: self.env_code(x, create=True))
-        if self.initialized and self._store.unbounded:
-            with lifecycle.critical():
-                self._fit(slice(0, n0), n0)  # grown first (committing the rows of now): no commit inside the hold
+        kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
+        if rows is not None and self.initialized:
+            self._prepare_rewrite(torch.arange(n0), rows, kind, tagged)
         # The rows replaced in ONE commit (journalled where it rewrites committed rows): a process killed before
         # the flush below leaves the rows of before the load, never an emptied or half-replaced memory
         with lifecycle.critical(), self._engine.held():
             if self.initialized and len(self):
                 self._reset_rows()
             if rows is not None:
-                kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
                 # written as a TensorDict, read back as the source's kind (or the store's)
                 self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tagged)
                 self._set_last_cursor(None)  # as TensorStorage.load_state_dict leaves it: no last write to slice from
@@ -579,6 +578,20 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
             self._store.restore_writers(self, force=True)
             self._bump_own()
         self.flush()
+
+    def _prepare_rewrite(self, cursor: torch.Tensor, rows: TensorDictBase, kind: DataKind, tagged: bool) -> None:
+        """What a rewrite of the rows would commit on its way, done first, with the rows of now: the write
+        checked (a refusal changes nothing), the rows it names read in (a writer's fill), a memory without a
+        capacity grown, the columns the rows add created (older rows read zeros). Inside the hold of
+        :meth:`load_state_dict` the write then commits nothing before its flush."""
+        view = StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags)
+        plan = plan_write(view, cursor, rows, set_cursor=True, as_kind=kind, keep_tags=tagged)
+        with lifecycle.critical(), self._own_write():
+            self._mirror.fill_before_write(cursor)
+            if self._store.unbounded:  # as _set will ask after the rows are emptied (no length left then)
+                self._fit(cursor, plan.n)
+            if plan.new_paths:
+                self._evolve_schema(plan.data, plan.new_paths, plan.single)
 
     def holds(self, state_dict: dict[str, Any]) -> bool:
         """Whether this store holds exactly the rows (and episode / run / env tags) of ``state_dict`` (a state of
