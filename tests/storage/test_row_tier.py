@@ -546,6 +546,11 @@ if source == "a state with a column the store lacks":
     other = LazyTensorStorage(30)
     other.set(torch.arange(30), TensorDict({"obs": -obs(0, 30)["obs"], "extra": torch.ones(30, 1)}, [30]))
     state = other.state_dict()
+if source == "a state with a constant the store lacks":
+    other = ZarrStorage(path + "-other", 30, goal_conditioned=False)
+    other.set(torch.arange(30), TensorDict({"obs": -obs(0, 30)["obs"], "label": "scripted"}, [30]))
+    state = copy.deepcopy(other.state_dict())
+    other.close()
 rb.extend(obs(100, 30))
 st.flush()  # 60 rows durable
 real = ZarrStorage._set
@@ -553,16 +558,19 @@ def then_killed(self, *args, **kwargs):  # the state's rows written (in RAM), th
     real(self, *args, **kwargs)
     os.kill(os.getpid(), signal.SIGKILL)
 ZarrStorage._set = then_killed
-(st if source == "a state with a column the store lacks" else rb).load_state_dict(state)
+(rb if source == "the store's own older state" else st).load_state_dict(state)
 """
 
 
-@pytest.mark.parametrize("source", ["the store's own older state", "a state with a column the store lacks"])
+@pytest.mark.parametrize("source", ["the store's own older state", "a state with a column the store lacks",
+                                    "a state with a constant the store lacks"])
 @pytest.mark.parametrize("max_size", [64, None], ids=["ring", "unbounded"])
 def test_a_rollback_killed_before_it_ends_leaves_the_rows_of_before_it(tmp_path, max_size, source):
     """``load_state_dict`` that replaces the rows (a rollback) emptied the store durably first, then wrote the
     state's rows: a SIGKILL in between left an empty memory. The whole replacement is now one commit. Found by a
-    review of that fix: a state adding a column committed the emptied store while adding it (now added first)."""
+    review of that fix: a state adding a column committed the emptied store while adding it (now added first).
+    Found by the next review: a state adding a constant wrote it to the record at once, so the rows of before
+    came back with it, and a write without it was refused (the constants now go in the commit's record)."""
     import subprocess
     import sys
 
@@ -572,6 +580,12 @@ def test_a_rollback_killed_before_it_ends_leaves_the_rows_of_before_it(tmp_path,
     assert proc.returncode == -9, proc.stderr[-2000:]
     with ZarrStorage(path, read_only=True) as back:
         assert back["obs"].flatten().tolist() == list(range(30)) + list(range(100, 130))
+        assert "label" not in back[:2].keys()
+    # it goes on, with the rows of before (a column the load added first stays: older rows read zeros there)
+    extra = {"extra": torch.ones(2, 1)} if source == "a state with a column the store lacks" else {}
+    with ZarrStorage(path, goal_conditioned=False) as back:
+        back.set(torch.arange(60, 62), _obs(200, 2, **extra))
+        assert back["obs"].flatten().tolist()[-3:] == [129.0, 200.0, 201.0]
 
 
 @pytest.mark.parametrize("case", ["a column added since", "other columns", "more rows than the capacity"])

@@ -443,10 +443,9 @@ class StoreSchema:
         self._create_arrays(added, filled=filled)
         self.mirror.configure({**self.mirror.schema, **added})
 
-    def add_constants(self, new: dict[str, Any]) -> dict:
-        """Records new non-tensor entries; returns the record's ``constants`` update."""
+    def add_constants(self, new: dict[str, Any]) -> None:
+        """Records new non-tensor entries (the next commit record carries them: ``MemoryStore.meta_snapshot``)."""
         self.constants = {**self.constants, **new}
-        return {"constants": dict(self.constants)}
 
     def state(self) -> dict:
         """The columns' part of ``ZarrStorage.state_dict()["zarr"]``: the data kind and the constants."""

@@ -375,8 +375,11 @@ class MemoryStore:
     def meta_snapshot(self, length: int, last: int | None) -> dict:
         """The record a commit writes, for ``length`` rows and the last written row ``last``."""
         writer = {"writer": None if self.writer_at is None else list(self.writer_at)}  # None replaces a stale one
+        # the constants with the rows that carry them: a rollback killed before its commit leaves neither
+        constants = {"constants": dict(self.schema.constants)} if self.schema.constants else {}
         return {"len": length, "cursor": self.cursor, "last_cursor": -1 if last is None else int(last),
-                "write_count": self.write_count, "session": self.session, **writer, **self.tags.record()}
+                "write_count": self.write_count, "session": self.session, **writer, **self.tags.record(),
+                **constants}
 
     def restore_writers(self, storage: Any, force: bool = False) -> None:
         """Puts the writers of the buffers on ``storage`` at this store's cursor and write count."""

@@ -337,8 +337,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 self._init_schema(data, plan.single)
             elif new_paths:
                 self._evolve_schema(data, new_paths, plan.single)
-            if new_constants:
-                self._engine.update_attrs(self._schema.add_constants(new_constants))
+            if new_constants:  # committed in the record that commits the rows carrying them
+                self._schema.add_constants(new_constants)
             if self._store.unbounded:  # TorchRL counts every row a set names into len, even rows written again
                 self._fit(cursor, self._len_along_dim0 + n if set_cursor else 0)
             rows = cursor_rows(cursor, self._mirror.max_dim0)
