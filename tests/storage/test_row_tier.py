@@ -588,6 +588,41 @@ def test_a_rollback_killed_before_it_ends_leaves_the_rows_of_before_it(tmp_path,
         assert back["obs"].flatten().tolist()[-3:] == [129.0, 200.0, 201.0]
 
 
+@pytest.mark.parametrize("max_size", [64, None], ids=["ring", "unbounded"])
+def test_a_rollback_that_fails_half_way_commits_none_of_it(tmp_path, monkeypatch, max_size):
+    """An error inside the rows' replacement (after the store's rows were emptied and the state's written in
+    RAM) left that half-done RAM to the next commit: the memory of before was lost. Now none of it is committed,
+    the rows of before (also those not yet committed when the load began) stay, the handle closes saying so."""
+    from torchrl_robotmem.storage.store import MemoryStore
+
+    path = str(tmp_path / "m.zarr")
+    st = ZarrStorage(path, max_size, goal_conditioned=False, commit_interval=3600.0)
+    rb = TensorDictReplayBuffer(storage=st, batch_size=2)
+    rb.extend(_obs(0, 30))
+    state = copy.deepcopy(rb.state_dict())
+    rb.extend(_obs(100, 30))  # not committed yet (no flush, the timer an hour away)
+
+    def fails(self, *args, **kwargs):  # the state's rows are in RAM by now
+        raise OSError("injected")
+
+    monkeypatch.setattr(MemoryStore, "load_position", fails)
+    with pytest.raises(RuntimeError, match="Nothing of it was committed: the store holds the rows of before"):
+        rb.load_state_dict(state)
+    monkeypatch.undo()
+    with pytest.raises(RuntimeError, match="is closed"):
+        rb.extend(_obs(7, 1))
+    before = list(range(30)) + list(range(100, 130))
+    with ZarrStorage(path, read_only=True) as back:
+        assert back["obs"].flatten().tolist() == before
+    again = ZarrStorage(path, goal_conditioned=False)  # the state loads once the cause is gone
+    rb = TensorDictReplayBuffer(storage=again, batch_size=2)
+    assert again["obs"].flatten().tolist() == before
+    rb.load_state_dict(state)
+    again.close()
+    with ZarrStorage(path, read_only=True) as back:
+        assert back["obs"].flatten().tolist() == list(range(30))
+
+
 @pytest.mark.parametrize("case", ["a column added since", "other columns", "more rows than the capacity"])
 def test_a_state_the_store_cannot_hold_is_refused_before_anything_changes(tmp_path, case):
     """Found by a review: load_state_dict emptied the store (durably) before the state's rows were checked."""

@@ -474,6 +474,21 @@ class MemoryStore:
         finally:
             self.release()
 
+    def give_up_writes(self) -> None:
+        """Closes the handle without committing what RAM holds since the last commit (a rewrite of the rows
+        that failed half-way: ``ZarrStorage.load_state_dict``). The store stays as it is on disk; its row
+        file, which no longer matches the commit record, is refilled from the chunks at the next open."""
+        engine = self.engine
+        with engine.cv:
+            engine.dirty.clear()
+            engine.meta_dirty = False
+            engine.first_dirty_time = None
+            while engine.inflight:  # a commit begun before the rewrite: the rows of before, let it end
+                engine.cv.wait(0.1)
+        if self.rows is not None:
+            self.rows.discard()  # unsealed since the first write: never trusted again (its own file deleted)
+        self.release()
+
     def close_components(self) -> None:
         """Runs the components' flushes registered in ``before_close`` (a sampler's priorities), each once.
 

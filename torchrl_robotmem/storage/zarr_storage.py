@@ -540,7 +540,9 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         the newer rows are replaced. A state holding this store's live rows (taken without a copy) cannot give
         back the rows of then where the store has moved on, and is refused, naming both counts. A state this
         store cannot hold (more rows than its capacity, a column it lacks, another dtype or shape) is refused
-        before anything changes, naming what.
+        before anything changes, naming what. The rows are replaced in one commit, after the rows of before are
+        committed: a process killed on the way leaves those; an error on the way commits none of it and closes
+        this handle (reopen the store to go on).
         """
         meta = state_dict.get("zarr") or {}
         rows = rows_of_state(state_dict.get("_storage"))
@@ -565,18 +567,33 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
         if rows is not None and self.initialized:
             self._prepare_rewrite(torch.arange(n0), rows, kind, tagged)
+        self.flush()  # the rows of before, durable: what a load that fails or is killed half-way leaves
         # The rows replaced in ONE commit (journalled where it rewrites committed rows): a process killed before
         # the flush below leaves the rows of before the load, never an emptied or half-replaced memory
-        with lifecycle.critical(), self._engine.held():
-            if self.initialized and len(self):
-                self._reset_rows()
-            if rows is not None:
-                # written as a TensorDict, read back as the source's kind (or the store's)
-                self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tagged)
-                self._set_last_cursor(None)  # as TensorStorage.load_state_dict leaves it: no last write to slice from
-                self._store.load_position(meta, rows, n0, tagged)
-            self._store.restore_writers(self, force=True)
-            self._bump_own()
+        replaced = False
+        try:
+            with lifecycle.critical(), self._engine.held():
+                if self.initialized and len(self):
+                    self._reset_rows()
+                if rows is not None:
+                    # written as a TensorDict, read back as the source's kind (or the store's)
+                    self._set(torch.arange(n0), rows, as_kind=kind, keep_tags=tagged)
+                    self._set_last_cursor(None)  # as TensorStorage.load_state_dict leaves it: no last write
+                    self._store.load_position(meta, rows, n0, tagged)
+                self._store.restore_writers(self, force=True)
+                self._bump_own()
+                replaced = True
+        except BaseException as err:
+            if replaced:  # a signal held back until the rows were whole (lifecycle.critical): they stay
+                raise
+            # RAM holds neither the rows of before nor the state's: none of it is committed
+            self._store.give_up_writes()
+            raise RuntimeError(
+                f"load_state_dict into the store at {self.path!r} failed after it began replacing the rows "
+                f"({type(err).__name__}: {err}). Nothing of it was committed: the store holds the rows of before "
+                f"the load. This handle is closed (its rows in RAM were half replaced): reopen the store with "
+                f"ZarrStorage({self.path!r}) and load the state again once the cause is fixed."
+            ) from err
         self.flush()
 
     def _prepare_rewrite(self, cursor: torch.Tensor, rows: TensorDictBase, kind: DataKind, tagged: bool) -> None:
