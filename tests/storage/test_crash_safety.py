@@ -45,9 +45,11 @@ import pytest
 import torch
 import zarr
 from conftest import seed_from_env
+from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
 from torchrl_robotmem.storage import ZarrStorage
+from torchrl_robotmem.storage.integrity import IntegrityError
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs fork and SIGKILL")
 
@@ -449,6 +451,59 @@ def test_crash_mid_journaled_commit_read_only_open(tmp_path):
     path = _crash_mid_wrap(tmp_path)
     st = ZarrStorage(path, read_only=True)
     assert _torn_rows(st) == 0
+
+
+_CONSTANT_JOURNAL_CHILD = """
+import json, os, signal, sys, torch
+from tensordict import TensorDict
+from torchrl_robotmem.storage import ZarrStorage, fast_write
+path, extra = sys.argv[1], json.loads(sys.argv[2])
+st = ZarrStorage(path, 8, chunk_rows=4, goal_conditioned=False, commit_interval=3600, commit_process=False)
+st.set(torch.arange(8), TensorDict({"obs": torch.arange(8.0)[:, None], "label": "scripted"}, [8]))
+st.flush()
+orig = fast_write.write_file
+def write_file(root, key, buffers, check=None):  # the journal written, then killed before the rows' own write
+    if not key.startswith("_journal/"):
+        with open(os.path.join(path, "zarr.json")) as f:
+            if json.load(f)["attributes"].get("journal"):
+                os.kill(os.getpid(), signal.SIGKILL)
+    return orig(root, key, buffers, check)
+fast_write.write_file = write_file
+st.set(torch.arange(2), TensorDict({"obs": torch.full((2, 1), 50.0), "label": "scripted", **extra}, [2]))
+st.flush()  # rewrites committed rows: through the journal
+"""
+
+
+@pytest.mark.parametrize("extra", [{}, {"source": "replay"}], ids=["same constants", "a constant added"])
+def test_a_store_with_constants_killed_mid_journal_reopens_with_the_journalled_rows(tmp_path, extra):
+    """Found by a review: with the constants in every commit record, a journal of a store holding one recorded
+    them, which the journal's check refuses (a journal never rewrites the structure): readers beside the writer
+    and every open after a kill there were refused, and `repair` then cut the memory to 0 rows. A record now
+    carries constants only when it adds one; a journal may add constants, never change or drop one."""
+    path = str(tmp_path / "m.zarr")
+    out = subprocess.run([sys.executable, "-c", _CONSTANT_JOURNAL_CHILD, path, json.dumps(extra)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == -signal.SIGKILL, out.stderr[-2000:]
+    g = zarr.open_group(path, mode="r")
+    assert g.attrs["journal"], "the kill left no pending journal: the scenario is not exercised"
+    assert ("constants" in g.attrs["journal"]["meta"]) == bool(extra)
+    for read_only in (True, False):  # the writable open replays the journal
+        with ZarrStorage(path, read_only=read_only) as st:
+            assert st["obs"].flatten().tolist() == [50.0, 50.0, 2, 3, 4, 5, 6, 7]
+            row = st[0]
+            assert row["label"] == "scripted"
+            assert (row["source"] if "source" in row.keys() else None) == extra.get("source")
+
+
+def test_a_journal_that_changes_a_constant_is_refused(tmp_path):
+    path = str(tmp_path / "m.zarr")
+    with ZarrStorage(path, 8, chunk_rows=4, goal_conditioned=False) as st:
+        st.set(torch.arange(8), TensorDict({"obs": torch.arange(8.0)[:, None], "label": "scripted"}, [8]))
+    g = zarr.open_group(path, mode="r+")
+    meta = {k: g.attrs[k] for k in ("len", "cursor", "write_count")}
+    g.update_attributes({"journal": {"chunks": [0], "meta": {**meta, "constants": {"label": "forged"}}}})
+    with pytest.raises(IntegrityError, match=r"pending journal rewrites \['constants'\]"):
+        ZarrStorage(path, read_only=True)
 
 
 def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):

@@ -623,6 +623,39 @@ def test_a_rollback_that_fails_half_way_commits_none_of_it(tmp_path, monkeypatch
         assert back["obs"].flatten().tolist() == list(range(30))
 
 
+_ROLLBACK_FAILS_UNDER_SIGTERM = """
+import copy, os, signal, sys, torch
+from tensordict import TensorDict
+from torchrl.data import TensorDictReplayBuffer
+from torchrl_robotmem import ZarrStorage
+obs = lambda lo, n: TensorDict({"obs": torch.arange(lo, lo + n, dtype=torch.float32).unsqueeze(-1)}, [n])
+st = ZarrStorage(sys.argv[1], 64, goal_conditioned=False)
+rb = TensorDictReplayBuffer(storage=st, batch_size=2)
+rb.extend(obs(0, 30))
+state = copy.deepcopy(rb.state_dict())
+rb.extend(obs(100, 30))
+def fails(self, *args, **kwargs):  # the rows emptied in RAM; a SIGTERM arrives (held back), then an error
+    os.kill(os.getpid(), signal.SIGTERM)
+    raise OSError("injected")
+ZarrStorage._set = fails
+rb.load_state_dict(state)
+"""
+
+
+def test_a_rollback_that_fails_while_a_sigterm_waits_commits_none_of_it(tmp_path):
+    """Found by a review: the load gave up only after its hold and critical section ended, where the SIGTERM
+    they held back flushed the half-replaced rows first (the store emptied on disk)."""
+    import subprocess
+    import sys
+
+    path = str(tmp_path / "m.zarr")
+    proc = subprocess.run([sys.executable, "-c", _ROLLBACK_FAILS_UNDER_SIGTERM, path], capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode != 0 and "Traceback" not in proc.stdout, proc.stderr[-2000:]
+    with ZarrStorage(path, read_only=True) as back:
+        assert back["obs"].flatten().tolist() == list(range(30)) + list(range(100, 130)), proc.stderr[-2000:]
+
+
 @pytest.mark.parametrize("case", ["a column added since", "other columns", "more rows than the capacity"])
 def test_a_state_the_store_cannot_hold_is_refused_before_anything_changes(tmp_path, case):
     """Found by a review: load_state_dict emptied the store (durably) before the state's rows were checked."""

@@ -98,6 +98,7 @@ class CommitEngine:
         self.error: BaseException | None = None
         self.committed_len = 0  # committed length (transitions)
         self.committed_write_count = 0  # write count of the last commit record
+        self.committed_constants: dict = {}  # the store's constants as the last commit record left them
         # journalled commits so far (the record's ``overwrites``): a reader tells by it that rows it was
         # loading were rewritten in place, which leaves every other field of the record as it was
         self.overwrites = 0
@@ -109,10 +110,12 @@ class CommitEngine:
         self._route_lock = threading.RLock()  # the worker starts once the open has read (MemoryStore.open_arrays)
 
     def set_committed(self, attrs: dict) -> None:
-        """Records the commit record found on disk (at open): ``len``, ``write_count`` and ``overwrites``."""
+        """Records the commit record found on disk (at open): ``len``, ``write_count``, ``overwrites`` and the
+        constants."""
         self.committed_len = int(attrs.get("len", 0))
         self.committed_write_count = int(attrs.get("write_count", 0))
         self.overwrites = int(attrs.get(OVERWRITES, 0))
+        self.committed_constants = dict(attrs.get("constants") or {})
 
     # -- bookkeeping (called under ``cv``) ----------------------------------------
 
@@ -247,6 +250,7 @@ class CommitEngine:
             self.committed_len = max(self.committed_len, int(attrs.get("len", 0)))
             self.committed_write_count = max(self.committed_write_count, int(attrs.get("write_count", 0)))
             self.overwrites = max(self.overwrites, int(attrs.get(OVERWRITES, 0)))
+            self.committed_constants = dict(attrs.get("constants") or {})
         for path in [p for p in self.arrays if p.startswith("_journal/")]:
             del self.arrays[path]  # the worker may have recreated (or half-created) them
 
@@ -408,6 +412,7 @@ class CommitEngine:
                 self.committed_len = int(meta["len"])
                 self.committed_write_count = int(meta["write_count"])
                 self.overwrites = int(meta.get(OVERWRITES, self.overwrites))
+                self.committed_constants = dict(meta.get("constants", self.committed_constants))
                 self.flush_done = max(self.flush_done, target)
             self.cv.notify_all()
 

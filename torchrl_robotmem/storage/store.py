@@ -375,8 +375,10 @@ class MemoryStore:
     def meta_snapshot(self, length: int, last: int | None) -> dict:
         """The record a commit writes, for ``length`` rows and the last written row ``last``."""
         writer = {"writer": None if self.writer_at is None else list(self.writer_at)}  # None replaces a stale one
-        # the constants with the rows that carry them: a rollback killed before its commit leaves neither
-        constants = {"constants": dict(self.schema.constants)} if self.schema.constants else {}
+        # new constants with the rows that carry them (a rollback killed before its commit leaves neither);
+        # a record that adds none leaves them out (the record's attributes are merged into the group's)
+        constants = self.schema.constants
+        constants = {"constants": dict(constants)} if constants != self.engine.committed_constants else {}
         return {"len": length, "cursor": self.cursor, "last_cursor": -1 if last is None else int(last),
                 "write_count": self.write_count, "session": self.session, **writer, **self.tags.record(),
                 **constants}
@@ -476,14 +478,16 @@ class MemoryStore:
 
     def give_up_writes(self) -> None:
         """Closes the handle without committing what RAM holds since the last commit (a rewrite of the rows
-        that failed half-way: ``ZarrStorage.load_state_dict``). The store stays as it is on disk; its row
-        file, which no longer matches the commit record, is refilled from the chunks at the next open."""
+        that failed half-way: ``ZarrStorage.load_state_dict``, which calls it inside its hold and critical
+        section, so that neither the engine's own commits nor a signal's flush run first). The store stays as
+        it is on disk; its row file, which no longer matches the commit record, is refilled from the chunks at
+        the next open."""
         engine = self.engine
         with engine.cv:
             engine.dirty.clear()
             engine.meta_dirty = False
             engine.first_dirty_time = None
-            while engine.inflight:  # a commit begun before the rewrite: the rows of before, let it end
+            while engine.inflight:  # a commit begun before the hold (the rows of before): let it end
                 engine.cv.wait(0.1)
         if self.rows is not None:
             self.rows.discard()  # unsealed since the first write: never trusted again (its own file deleted)

@@ -570,9 +570,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         self.flush()  # the rows of before, durable: what a load that fails or is killed half-way leaves
         # The rows replaced in ONE commit (journalled where it rewrites committed rows): a process killed before
         # the flush below leaves the rows of before the load, never an emptied or half-replaced memory
-        replaced = False
-        try:
-            with lifecycle.critical(), self._engine.held():
+        with lifecycle.critical(), self._engine.held():
+            try:
                 if self.initialized and len(self):
                     self._reset_rows()
                 if rows is not None:
@@ -582,18 +581,18 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                     self._store.load_position(meta, rows, n0, tagged)
                 self._store.restore_writers(self, force=True)
                 self._bump_own()
-                replaced = True
-        except BaseException as err:
-            if replaced:  # a signal held back until the rows were whole (lifecycle.critical): they stay
-                raise
-            # RAM holds neither the rows of before nor the state's: none of it is committed
-            self._store.give_up_writes()
-            raise RuntimeError(
-                f"load_state_dict into the store at {self.path!r} failed after it began replacing the rows "
-                f"({type(err).__name__}: {err}). Nothing of it was committed: the store holds the rows of before "
-                f"the load. This handle is closed (its rows in RAM were half replaced): reopen the store with "
-                f"ZarrStorage({self.path!r}) and load the state again once the cause is fixed."
-            ) from err
+            except BaseException as err:
+                # RAM holds neither the rows of before nor the state's: none of it is committed. Given up inside
+                # the hold (no commit of the engine's own starts) and the critical section (a signal's flush
+                # waits, then finds the handle closed)
+                self._store.give_up_writes()
+                super()._empty()  # nothing served from the half-replaced rows
+                raise RuntimeError(
+                    f"load_state_dict into the store at {self.path!r} failed after it began replacing the rows "
+                    f"({type(err).__name__}: {err}). Nothing of it was committed: the store holds the rows of "
+                    f"before the load. This handle is closed (its rows in RAM were half replaced): reopen the "
+                    f"store with ZarrStorage({self.path!r}) and load the state again once the cause is fixed."
+                ) from err
         self.flush()
 
     def _prepare_rewrite(self, cursor: torch.Tensor, rows: TensorDictBase, kind: DataKind, tagged: bool) -> None:

@@ -22,9 +22,9 @@ from ..schema import DataKind
 __all__ = ["bad_attributes", "check_attributes", "is_int", "unsafe_path"]
 
 _KINDS = ("tensordict", "tensor", "pytree", "tensorclass")
-#: what a pending journal's ``meta`` may set (a commit's length, cursor and counters), never the structure
-_STRUCTURE = (FORMAT_MARKER, "max_size", "ndim", "inner_shape", "chunk_rows", "schema", "kind",
-              "constants", "journal")
+#: what a pending journal's ``meta`` may set (a commit's length, cursor and counters, and constants it adds:
+#: ``_added_constants``), never the structure
+_STRUCTURE = (FORMAT_MARKER, "max_size", "ndim", "inner_shape", "chunk_rows", "schema", "kind", "journal")
 
 
 def is_int(v: Any) -> bool:
@@ -188,6 +188,14 @@ def _table_problems(attrs: dict) -> list[Problem]:
     return out
 
 
+def _added_constants(before: Any, after: Any) -> bool:
+    """Whether a journal's ``constants`` keep every constant of the record as it is (a commit adds new ones
+    with the rows that carry them; it never changes or drops one)."""
+    before = before or {}
+    return (isinstance(before, dict) and isinstance(after, dict)
+            and all(k in after and after[k] == v for k, v in before.items()))
+
+
 def _journal_record_problems(attrs: dict, journal: dict) -> list[Problem]:
     """A pending journal's own record: what its replay would commit must be a sane commit record too."""
     def bad(what, **kw):
@@ -195,8 +203,11 @@ def _journal_record_problems(attrs: dict, journal: dict) -> list[Problem]:
 
     meta = journal["meta"]
     structural = sorted(set(meta) & set(_STRUCTURE))
+    if "constants" in meta and not _added_constants(attrs.get("constants"), meta["constants"]):
+        structural = sorted([*structural, "constants"])
     if structural:
-        return [bad(f"rewrites {structural} (a journal records a commit's length, cursor and counters only)")]
+        return [bad(f"rewrites {structural} (a journal records a commit's length, cursor and counters, and "
+                    f"constants it adds, only)")]
     out = [bad(f"records {p.what}") for p in check_attributes({**attrs, **meta, "journal": None})]
     if out or not attrs.get("schema"):
         return out
