@@ -495,15 +495,67 @@ def test_a_store_with_constants_killed_mid_journal_reopens_with_the_journalled_r
             assert (row["source"] if "source" in row.keys() else None) == extra.get("source")
 
 
-def test_a_journal_that_changes_a_constant_is_refused(tmp_path):
+@pytest.mark.parametrize("forged", [{"label": "forged"}, {}, {"label": "scripted", "n": True}],
+                         ids=["changed", "dropped", "another type"])
+def test_a_journal_that_changes_a_constant_is_refused(tmp_path, forged):
+    """A journal may add constants, never change or drop one (found by a review: ``1 == True`` passed)."""
     path = str(tmp_path / "m.zarr")
     with ZarrStorage(path, 8, chunk_rows=4, goal_conditioned=False) as st:
         st.set(torch.arange(8), TensorDict({"obs": torch.arange(8.0)[:, None], "label": "scripted"}, [8]))
     g = zarr.open_group(path, mode="r+")
+    g.update_attributes({"constants": {"label": "scripted", "n": 1}})  # as a write of n=1 records it
     meta = {k: g.attrs[k] for k in ("len", "cursor", "write_count")}
-    g.update_attributes({"journal": {"chunks": [0], "meta": {**meta, "constants": {"label": "forged"}}}})
+    g.update_attributes({"journal": {"chunks": [0], "meta": {**meta, "constants": forged}}})
     with pytest.raises(IntegrityError, match=r"pending journal rewrites \['constants'\]"):
         ZarrStorage(path, read_only=True)
+
+
+_CONSTANT_GROWTH_CHILD = """
+import os, signal, sys, torch
+from tensordict import TensorDict
+from torchrl_robotmem.storage import ZarrStorage
+from torchrl_robotmem.storage.store import MemoryStore
+st = ZarrStorage(sys.argv[1], goal_conditioned=False, chunk_rows=4, commit_interval=3600)  # no capacity
+st.set(torch.arange(4), TensorDict({"obs": torch.arange(4.0)[:, None]}, [4]))
+n = st.capacity
+st.set(torch.arange(4, n), TensorDict({"obs": torch.arange(4.0, n)[:, None]}, [n - 4]))  # not committed yet
+def grow_for(self, need):  # killed after the growth's flush of the rows before, before the new rows
+    os.kill(os.getpid(), signal.SIGKILL)
+MemoryStore.grow_for = grow_for
+st.set(torch.arange(n, n + 4), TensorDict({"obs": torch.zeros(4, 1), "label": "new"}, [4]))
+"""
+
+
+def test_a_constant_whose_write_grows_the_memory_is_committed_with_its_rows(tmp_path, monkeypatch):
+    """Found by a review: the constant was added before the growth, whose flush of the rows before committed it
+    without any row carrying it (a kill there, or a growth that failed, left a store refusing writes without it)."""
+    from torchrl_robotmem.storage.store import MemoryStore
+
+    path = str(tmp_path / "killed.zarr")
+    out = subprocess.run([sys.executable, "-c", _CONSTANT_GROWTH_CHILD, path], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == -signal.SIGKILL, out.stderr[-2000:]
+    with ZarrStorage(path, goal_conditioned=False) as st:
+        n = len(st)
+        assert n > 4 and "label" not in st[0].keys(), "the flush before the growth did not run: not exercised"
+        st.set(torch.arange(n, n + 2), TensorDict({"obs": torch.zeros(2, 1)}, [2]))  # no constant to carry
+
+    path = str(tmp_path / "failed.zarr")  # the growth fails (a full disk): the write changes nothing
+    st = ZarrStorage(path, goal_conditioned=False, chunk_rows=4, commit_interval=3600)
+    st.set(torch.arange(4), TensorDict({"obs": torch.arange(4.0)[:, None]}, [4]))
+    n = st.capacity
+    st.set(torch.arange(4, n), TensorDict({"obs": torch.arange(4.0, n)[:, None]}, [n - 4]))
+
+    def full(self, need):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(MemoryStore, "grow_for", full)
+    with pytest.raises(OSError, match="No space left"):
+        st.set(torch.arange(n, n + 4), TensorDict({"obs": torch.zeros(4, 1), "label": "new"}, [4]))
+    monkeypatch.undo()
+    st.set(torch.arange(n, n + 2), TensorDict({"obs": torch.zeros(2, 1)}, [2]))  # no constant to carry
+    st.close()
+    assert "constants" not in zarr.open_group(path, mode="r").attrs
 
 
 def test_flush_waits_for_an_in_flight_commit(tmp_path, monkeypatch):

@@ -337,14 +337,14 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 self._init_schema(data, plan.single)
             elif new_paths:
                 self._evolve_schema(data, new_paths, plan.single)
-            if new_constants:  # committed in the record that commits the rows carrying them
-                self._schema.add_constants(new_constants)
             if self._store.unbounded:  # TorchRL counts every row a set names into len, even rows written again
                 self._fit(cursor, self._len_along_dim0 + n if set_cursor else 0)
             rows = cursor_rows(cursor, self._mirror.max_dim0)
             span, dirty = write_span(cursor, data, rows)
             with self._engine.cv:
                 self._write_ram(cursor, span, data, set_cursor)
+                if new_constants:  # with the rows that carry them, under the lock a commit takes its record in
+                    self._schema.add_constants(new_constants)  # (never before: _fit's flush, a failed write)
                 if set_cursor:
                     self._store.advance(n, int(rows[-1]) + 1)
                 else:
@@ -565,7 +565,7 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         self._check_state(rows, state_dict)  # before anything changes: LazyTensorStorage raises keeping its rows
         rows, n0, tagged = state_rows(rows, state_dict, ndim=self.ndim, env_code=lambda x: self.env_code(x, create=True))
         kind = source_kind(state_dict, self._schema.kind, has_schema=self._mirror.schema is not None)
-        if rows is not None and self.initialized:
+        if rows is not None:
             self._prepare_rewrite(torch.arange(n0), rows, kind, tagged)
         self.flush()  # the rows of before, durable: what a load that fails or is killed half-way leaves
         # The rows replaced in ONE commit (journalled where it rewrites committed rows): a process killed before
@@ -587,6 +587,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
                 # waits, then finds the handle closed)
                 self._store.give_up_writes()
                 super()._empty()  # nothing served from the half-replaced rows
+                if not isinstance(err, Exception):  # KeyboardInterrupt, SystemExit: as they came (handle closed)
+                    raise
                 raise RuntimeError(
                     f"load_state_dict into the store at {self.path!r} failed after it began replacing the rows "
                     f"({type(err).__name__}: {err}). Nothing of it was committed: the store holds the rows of "
@@ -602,6 +604,8 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         :meth:`load_state_dict` the write then commits nothing before its flush."""
         view = StoreView.of(self.path, self.ndim, self.initialized, self._schema, self._tags)
         plan = plan_write(view, cursor, rows, set_cursor=True, as_kind=kind, keep_tags=tagged)
+        if not self.initialized:  # a first write: it creates the columns itself (checked here all the same)
+            return
         with lifecycle.critical(), self._own_write():
             self._mirror.fill_before_write(cursor)
             if self._store.unbounded:  # as _set will ask after the rows are emptied (no length left then)

@@ -189,11 +189,11 @@ def _table_problems(attrs: dict) -> list[Problem]:
 
 
 def _added_constants(before: Any, after: Any) -> bool:
-    """Whether a journal's ``constants`` keep every constant of the record as it is (a commit adds new ones
-    with the rows that carry them; it never changes or drops one)."""
+    """Whether a journal's ``constants`` keep every constant of the record as it is, type included (a commit
+    adds new ones with the rows that carry them; it never changes or drops one: ``1`` is not ``True``)."""
     before = before or {}
     return (isinstance(before, dict) and isinstance(after, dict)
-            and all(k in after and after[k] == v for k, v in before.items()))
+            and all(k in after and type(after[k]) is type(v) and after[k] == v for k, v in before.items()))
 
 
 def _journal_record_problems(attrs: dict, journal: dict) -> list[Problem]:
