@@ -656,6 +656,22 @@ def test_a_rollback_that_fails_while_a_sigterm_waits_commits_none_of_it(tmp_path
         assert back["obs"].flatten().tolist() == list(range(30)) + list(range(100, 130)), proc.stderr[-2000:]
 
 
+def test_a_state_larger_than_a_fresh_store_is_refused_before_anything_changes(tmp_path):
+    """Found by a review: the capacity was checked only on a store that had had a first write; before it, a
+    state of 12 rows into a store of 10 failed inside the load (torch's shape error before, the handle closed
+    and an empty store after e5a91ad)."""
+    lts = LazyTensorStorage(12)
+    lts.set(torch.arange(12), _obs(0, 12))
+    path = str(tmp_path / "m.zarr")
+    st = ZarrStorage(path, 10, goal_conditioned=False)
+    with pytest.raises(ValueError, match="The state holds 12 rows .* holds at most 10 .* Nothing was changed"):
+        st.load_state_dict(lts.state_dict())
+    st.set(torch.arange(3), _obs(0, 3))  # it goes on
+    st.close()
+    with ZarrStorage(path, read_only=True) as back:
+        assert back["obs"].flatten().tolist() == [0.0, 1.0, 2.0]
+
+
 @pytest.mark.parametrize("case", ["a column added since", "other columns", "more rows than the capacity"])
 def test_a_state_the_store_cannot_hold_is_refused_before_anything_changes(tmp_path, case):
     """Found by a review: load_state_dict emptied the store (durably) before the state's rows were checked."""

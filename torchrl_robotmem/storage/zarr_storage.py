@@ -649,7 +649,10 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         if rows is None or not n:
             return
         n0 = state_dim0(rows, n, ndim=self.ndim)
-        if not self._store.unbounded and self.initialized and n0 > self._mirror.max_dim0:
+        # before the first write the capacity is max_size elements (TorchRL's, for any ndim)
+        too_many = (n0 > self._mirror.max_dim0 if self.initialized
+                    else len(rows) >= n0 and rows[:n0].numel() > self.max_size)
+        if not self._store.unbounded and too_many:
             raise ValueError(f"The state holds {n0} rows along the first dimension; the store at {self.path!r} "
                              f"holds at most {self._mirror.max_dim0} (max_size={self.max_size}): load it into a "
                              f"store of that capacity. Nothing was changed.")
