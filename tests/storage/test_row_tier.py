@@ -668,6 +668,13 @@ def test_a_state_larger_than_a_fresh_store_is_refused_before_anything_changes(tm
         st.load_state_dict(lts.state_dict())
     st.set(torch.arange(3), _obs(0, 3))  # it goes on
     st.close()
+    # found by TorchRL's own tests: a row with batch dimensions of its own counts once (10 rows of [10, 3] fit 10)
+    lts = LazyTensorStorage(10)
+    lts.set(torch.arange(10), TensorDict({"x": torch.ones(10, 3, 2)}, [10, 3]))
+    fresh = ZarrStorage(str(tmp_path / "rows.zarr"), 10, goal_conditioned=False)
+    fresh.load_state_dict(lts.state_dict())
+    assert len(fresh) == 10 and fresh[0]["x"].shape == (3, 2)
+    fresh.close()
     with ZarrStorage(path, read_only=True) as back:
         assert back["obs"].flatten().tolist() == [0.0, 1.0, 2.0]
 

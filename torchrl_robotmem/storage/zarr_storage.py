@@ -6,6 +6,7 @@ The TorchRL ``Storage`` contract, composing the parts of this package; ``docs/st
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sys
 import weakref
@@ -649,9 +650,10 @@ class ZarrStorage(HostIndices, LazyTensorStorage):  # HostIndices: HER over a CU
         if rows is None or not n:
             return
         n0 = state_dim0(rows, n, ndim=self.ndim)
-        # before the first write the capacity is max_size elements (TorchRL's, for any ndim)
-        too_many = (n0 > self._mirror.max_dim0 if self.initialized
-                    else len(rows) >= n0 and rows[:n0].numel() > self.max_size)
+        # before the first write the capacity is max_size items across the store's ndim dimensions (TorchRL's;
+        # a row of an ndim=1 store may have batch dimensions of its own)
+        items = n0 * math.prod(rows.batch_size[1:self.ndim]) if len(rows.batch_size) >= self.ndim else n0
+        too_many = n0 > self._mirror.max_dim0 if self.initialized else items > self.max_size
         if not self._store.unbounded and too_many:
             raise ValueError(f"The state holds {n0} rows along the first dimension; the store at {self.path!r} "
                              f"holds at most {self._mirror.max_dim0} (max_size={self.max_size}): load it into a "
