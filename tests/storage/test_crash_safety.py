@@ -30,6 +30,7 @@ ahead of the metadata) and pin the bugs found by the random test.
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing as mp
 import os
 import random
@@ -455,11 +456,11 @@ def test_crash_mid_journaled_commit_read_only_open(tmp_path):
 
 _CONSTANT_JOURNAL_CHILD = """
 import json, os, signal, sys, torch
-from tensordict import TensorDict
+from tensordict import NonTensorData, TensorDict
 from torchrl_robotmem.storage import ZarrStorage, fast_write
-path, extra = sys.argv[1], json.loads(sys.argv[2])
+path, extra, label = sys.argv[1], json.loads(sys.argv[2]), json.loads(sys.argv[3])
 st = ZarrStorage(path, 8, chunk_rows=4, goal_conditioned=False, commit_interval=3600, commit_process=False)
-st.set(torch.arange(8), TensorDict({"obs": torch.arange(8.0)[:, None], "label": "scripted"}, [8]))
+st.set(torch.arange(8), TensorDict({"obs": torch.arange(8.0)[:, None], "label": NonTensorData(label, batch_size=[8])}, [8]))
 st.flush()
 orig = fast_write.write_file
 def write_file(root, key, buffers, check=None):  # the journal written, then killed before the rows' own write
@@ -469,19 +470,21 @@ def write_file(root, key, buffers, check=None):  # the journal written, then kil
                 os.kill(os.getpid(), signal.SIGKILL)
     return orig(root, key, buffers, check)
 fast_write.write_file = write_file
-st.set(torch.arange(2), TensorDict({"obs": torch.full((2, 1), 50.0), "label": "scripted", **extra}, [2]))
+st.set(torch.arange(2), TensorDict({"obs": torch.full((2, 1), 50.0), "label": NonTensorData(label, batch_size=[2]), **extra}, [2]))
 st.flush()  # rewrites committed rows: through the journal
 """
 
 
-@pytest.mark.parametrize("extra", [{}, {"source": "replay"}], ids=["same constants", "a constant added"])
-def test_a_store_with_constants_killed_mid_journal_reopens_with_the_journalled_rows(tmp_path, extra):
+@pytest.mark.parametrize("extra, label", [({}, "scripted"), ({"source": "replay"}, "scripted"), ({}, math.nan)],
+                         ids=["same constants", "a constant added", "a NaN constant"])
+def test_a_store_with_constants_killed_mid_journal_reopens_with_the_journalled_rows(tmp_path, extra, label):
     """Found by a review: with the constants in every commit record, a journal of a store holding one recorded
     them, which the journal's check refuses (a journal never rewrites the structure): readers beside the writer
     and every open after a kill there were refused, and `repair` then cut the memory to 0 rows. A record now
-    carries constants only when it adds one; a journal may add constants, never change or drop one."""
+    carries constants only when it adds one; a journal may add constants, never change or drop one. A NaN
+    constant is the same constant at every write (``nan != nan`` refused its second write)."""
     path = str(tmp_path / "m.zarr")
-    out = subprocess.run([sys.executable, "-c", _CONSTANT_JOURNAL_CHILD, path, json.dumps(extra)],
+    out = subprocess.run([sys.executable, "-c", _CONSTANT_JOURNAL_CHILD, path, json.dumps(extra), json.dumps(label)],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == -signal.SIGKILL, out.stderr[-2000:]
     g = zarr.open_group(path, mode="r")
@@ -491,7 +494,7 @@ def test_a_store_with_constants_killed_mid_journal_reopens_with_the_journalled_r
         with ZarrStorage(path, read_only=read_only) as st:
             assert st["obs"].flatten().tolist() == [50.0, 50.0, 2, 3, 4, 5, 6, 7]
             row = st[0]
-            assert row["label"] == "scripted"
+            assert row["label"] == label or isinstance(label, float) and math.isnan(row["label"])
             assert (row["source"] if "source" in row.keys() else None) == extra.get("source")
 
 

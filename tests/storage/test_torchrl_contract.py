@@ -6,6 +6,7 @@ its remaining differences are listed in ``docs/storage.md``).
 """
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import pickle
 
@@ -118,6 +119,28 @@ def test_non_tensor_entries_are_kept_as_one_value_per_store(tmp_path):
         td_rb.extend(TensorDict({"x": NonTensorData("oops", batch_size=[4]), "tag": NonTensorData("a", batch_size=[4])}, [4]))
     assert len(td_rb) == 4
 
+
+def test_a_nan_constant_is_the_same_constant_at_every_write(tmp_path):
+    """Found by a review: ``nan != nan`` refused every write after the first of a NaN constant (and a stack of
+    NaN rows as different values)."""
+    path = tmp_path / "n.zarr"
+
+    def rows(n, gain=math.nan):
+        return TensorDict({"x": torch.zeros(n), "gain": NonTensorData(gain, batch_size=[n])}, [n])
+
+    rb = ReplayBuffer(storage=ZarrStorage(path, 100), batch_size=3)
+    rb.extend(rows(4))
+    rb.extend(rows(4))
+    rb.extend(TensorDict({"x": torch.zeros(2), "gain": NonTensorStack(*[NonTensorData(math.nan)] * 2)}, [2]))
+    rb.storage.close()
+    st = ZarrStorage(path)  # the NaN read back from the record is the same constant too
+    rb = ReplayBuffer(storage=st, batch_size=3)
+    rb.extend(rows(4))
+    for other in (1.0, 0.0):
+        with pytest.raises(ValueError, match=r"'gain' holds"):
+            rb.extend(rows(2, other))
+    assert len(st) == 14 and math.isnan(st[torch.arange(3)]["gain"])
+    st.close()
 
 def test_kinds_do_not_mix(tmp_path):
     rb = ReplayBuffer(storage=ZarrStorage(tmp_path / "k.zarr", 10))

@@ -33,7 +33,7 @@ from tensordict.base import _is_leaf_nontensor
 
 from . import _backend
 from .format import UNBOUNDED_SIZE
-from .schema import DataKind, check_against, split_constants
+from .schema import DataKind, check_against, same_constant, split_constants
 from .tags import TAG_KEYS, UNKNOWN_ENV, check_user_keys, check_user_tag, env_names_of
 
 __all__ = ["MAX_NAME_BYTES", "StoreView", "WritePlan", "check_constants", "check_key_names", "completes_chunk",
@@ -549,7 +549,7 @@ def check_constants(view: StoreView, found: dict[str, Any]) -> dict[str, Any]:
         if path not in constants:
             check_key_names([key])
             new[path] = value
-        elif constants[path] != value or type(constants[path]) is not type(value):
+        elif not same_constant(constants[path], value):
             raise ValueError(
                 f"Key {key!r} holds {value!r}, but the store at {view.path!r} holds {constants[path]!r} "
                 f"for it. ZarrStorage keeps a non-tensor entry as one value shared by every row (in the "

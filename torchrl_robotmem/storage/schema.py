@@ -58,8 +58,8 @@ from .layout import PackedLayout
 from .tags import TAG_KEYS
 
 __all__ = [
-    "DataKind", "StoreSchema", "check_against", "create_arrays", "default_chunk_rows", "spec_of", "split_constants",
-    "with_constants",
+    "DataKind", "StoreSchema", "check_against", "create_arrays", "default_chunk_rows", "same_constant",
+    "same_constants", "spec_of", "split_constants", "with_constants",
 ]
 
 
@@ -201,6 +201,28 @@ class DataKind:
 CONSTANT_TYPES = (str, int, float, bool, type(None))
 
 
+def same_constant(a: Any, b: Any) -> bool:
+    """Whether two constants are the same value of the same type (``1`` is not ``True`` nor ``1.0``; NaN is NaN).
+
+    Example:
+        >>> same_constant(float("nan"), float("nan")), same_constant(1, True), same_constant("a", "a")
+        (True, False, True)
+    """
+    if type(a) is not type(b):
+        return False
+    return a == b or (isinstance(a, float) and math.isnan(a) and math.isnan(b))
+
+
+def same_constants(a: dict, b: dict) -> bool:
+    """Whether two ``{path: constant}`` dicts hold the same keys, each with the :func:`same_constant` value.
+
+    Example:
+        >>> same_constants({"t": float("nan")}, {"t": float("nan")}), same_constants({"t": 1}, {})
+        (True, False)
+    """
+    return a.keys() == b.keys() and all(same_constant(v, b[k]) for k, v in a.items())
+
+
 def split_constants(td: TensorDictBase) -> dict[str, Any]:
     """Pops the non-tensor leaves of ``td`` (in place) and returns ``{path: value}``.
 
@@ -226,7 +248,7 @@ def split_constants(td: TensorDictBase) -> dict[str, Any]:
             continue
         if isinstance(value, NonTensorStack):
             values = _flat(value.tolist())
-            if any(v != values[0] or type(v) is not type(values[0]) for v in values[1:]):
+            if any(not same_constant(v, values[0]) for v in values[1:]):
                 raise ValueError(
                     f"Key {key!r} holds different non-tensor values across rows ({_preview(values)}). "
                     f"ZarrStorage keeps a non-tensor entry only as one value shared by every row (in the "

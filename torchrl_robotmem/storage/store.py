@@ -28,7 +28,7 @@ from .layout import PackedLayout
 from .mirror import RamMirror
 from .planner import WritePlan, cursor_rows
 from .rowfile import ROWS_DIR, RowFile, rows_layout, url_cache_dir
-from .schema import StoreSchema, with_constants
+from .schema import StoreSchema, same_constants, with_constants
 from .summary import summarize
 from .tags import TAG_KEYS, TagRegistry
 
@@ -378,7 +378,7 @@ class MemoryStore:
         # new constants with the rows that carry them (a rollback killed before its commit leaves neither);
         # a record that adds none leaves them out (the record's attributes are merged into the group's)
         constants = self.schema.constants
-        constants = {"constants": dict(constants)} if constants != self.engine.committed_constants else {}
+        constants = {} if same_constants(constants, self.engine.committed_constants) else {"constants": dict(constants)}
         return {"len": length, "cursor": self.cursor, "last_cursor": -1 if last is None else int(last),
                 "write_count": self.write_count, "session": self.session, **writer, **self.tags.record(),
                 **constants}

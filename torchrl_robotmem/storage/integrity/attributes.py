@@ -17,7 +17,7 @@ from typing import Any
 from .. import _backend
 from ..errors import Problem
 from ..format import FORMAT_MARKER, FORMAT_VERSION, RESERVED, dims
-from ..schema import DataKind
+from ..schema import DataKind, same_constant
 
 __all__ = ["bad_attributes", "check_attributes", "is_int", "unsafe_path"]
 
@@ -193,7 +193,7 @@ def _added_constants(before: Any, after: Any) -> bool:
     adds new ones with the rows that carry them; it never changes or drops one: ``1`` is not ``True``)."""
     before = before or {}
     return (isinstance(before, dict) and isinstance(after, dict)
-            and all(k in after and type(after[k]) is type(v) and after[k] == v for k, v in before.items()))
+            and all(k in after and same_constant(v, after[k]) for k, v in before.items()))
 
 
 def _journal_record_problems(attrs: dict, journal: dict) -> list[Problem]:
