@@ -137,6 +137,17 @@ class CommitEngine:
     def mark_meta_dirty(self) -> None:
         self.meta_dirty = True
 
+    def discard_pending(self) -> None:
+        """Forgets what RAM holds since the last commit (nothing of it is committed) and waits for a commit
+        already begun to end: ``MemoryStore.give_up_writes``, inside a :meth:`held` block, before the handle
+        closes."""
+        with self.cv:
+            self.dirty.clear()
+            self.meta_dirty = False
+            self.first_dirty_time = None
+            while self.inflight:  # a commit begun before the hold (the rows of before): let it end
+                self.cv.wait(0.1)
+
     @contextlib.contextmanager
     def held(self):
         """A block of writes that reaches the disk in one commit: the commits the engine starts on its own (the

@@ -482,13 +482,7 @@ class MemoryStore:
         section, so that neither the engine's own commits nor a signal's flush run first). The store stays as
         it is on disk; its row file, which no longer matches the commit record, is refilled from the chunks at
         the next open."""
-        engine = self.engine
-        with engine.cv:
-            engine.dirty.clear()
-            engine.meta_dirty = False
-            engine.first_dirty_time = None
-            while engine.inflight:  # a commit begun before the hold (the rows of before): let it end
-                engine.cv.wait(0.1)
+        self.engine.discard_pending()
         if self.rows is not None:
             self.rows.discard()  # unsealed since the first write: never trusted again (its own file deleted)
         self.release()
