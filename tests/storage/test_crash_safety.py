@@ -454,6 +454,65 @@ def test_crash_mid_journaled_commit_read_only_open(tmp_path):
     assert _torn_rows(st) == 0
 
 
+def _end_journal(path, *, next_journal=False):
+    """What a writer does at a journalled commit's end: the rows in place, the record, and (``next_journal``)
+    the next journalled commit's record; or its journal arrays replaced by the next one's (deleted here)."""
+    from torchrl_robotmem.storage.format import writing_config
+    from torchrl_robotmem.storage.journal import replay_journal
+
+    g = zarr.open_group(path, mode="r+")
+    journal = g.attrs["journal"]
+    with writing_config():  # as a writer replays it: every chunk written, an all-zero one too
+        replay_journal(g, journal)
+    if next_journal:  # the same chunks journalled again (the arrays hold their rows): a new pending journal
+        meta = {**journal["meta"], "overwrites": int(journal["meta"].get("overwrites", 0)) + 1}
+        g.update_attributes({"journal": {"chunks": journal["chunks"], "meta": meta}})
+    else:
+        import shutil
+
+        shutil.rmtree(os.path.join(path, "_journal"))
+
+
+@pytest.mark.parametrize("when", ["applying it", "reading its chunks again"])
+def test_a_reader_whose_pending_journal_ends_during_its_open_serves_whole_rows(tmp_path, monkeypatch, when):
+    """Found by looping an export beside a writer that wraps a ring: a read-only open read a pending journal's
+    arrays after the writer had ended that commit and its next journal had replaced them, and raised
+    ``KeyError: '_journal/observation'`` (``robotmem export`` said the store was not a memory). A journal array
+    that is gone while the record has moved on is read again from the record of now."""
+    from torchrl_robotmem.storage import _backend
+    from torchrl_robotmem.storage.mirror import RamMirror
+
+    path = str(_crash_mid_wrap(tmp_path))
+    load, open_group, calls = RamMirror.load, _backend.open_group, []
+
+    def load_then_write(self, *args, **kwargs):
+        left = load(self, *args, **kwargs)
+        if when == "applying it":
+            _end_journal(path)
+        else:
+            calls.append("loaded")
+        return left
+
+    def open_group_then_write(*args, **kwargs):  # the reader's looks at the record, once its rows are loaded
+        group = open_group(*args, **kwargs)
+        if calls:
+            calls.append("record")
+            if len(calls) == 2:  # before the reread: the journal ended, the next one pending (same chunks)
+                _end_journal(path, next_journal=True)
+                group = open_group(*args, **kwargs)
+            elif len(calls) == 3:  # the reread saw it pending; it ends, and its arrays are replaced
+                _end_journal(path)
+        return group
+
+    monkeypatch.setattr(RamMirror, "load", load_then_write)
+    monkeypatch.setattr(_backend, "open_group", open_group_then_write)
+    st = ZarrStorage(path, read_only=True)
+    assert len(st) == 128 and _torn_rows(st) == 0
+    assert not os.path.exists(os.path.join(path, "_journal")), "the scenario was not exercised"
+    assert when == "applying it" or len(calls) > 3
+    st.close()
+
+
 _CONSTANT_JOURNAL_CHILD = """
 import json, os, signal, sys, torch
 from tensordict import NonTensorData, TensorDict

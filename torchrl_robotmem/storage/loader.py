@@ -114,10 +114,11 @@ def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> i
     n = int(attrs.get("len", 0))
     n0 = mirror.dim0(n)
     left = mirror.load(handle.group, n0, store_path=handle.path, read_only=read_only, local_dir=handle.local_dir)
-    if journal and read_only:
-        mirror.apply_journal(handle.group, journal)
+    gone = mirror.apply_journal(handle.group, journal) if journal and read_only else None
     reread = bool(read_only and n0 and mirror.reread_overwritten(handle.store, handle.group, record, n0,
                                                                   store_path=handle.path))
+    if gone is not None and not reread:  # the journal's arrays are missing, and no commit replaced them
+        raise gone
     if n0 and (left or reread):
         # Zarr reads a chunk file that is gone as zeros: one moved away since the open's
         # listing (by `robotmem repair`) is an error here, never zero rows served. The

@@ -428,11 +428,20 @@ class RamMirror:
                     read_rows(arrays[path], path, n0, self.chunk_rows, store_path, read_only))
         return left
 
-    def apply_journal(self, group: Any, journal: dict) -> None:
-        """A reader applies a pending journal in RAM only."""
+    def apply_journal(self, group: Any, journal: dict) -> KeyError | None:
+        """A reader applies a pending journal in RAM only.
+
+        Returns ``None``, or the ``KeyError`` of a journal array that is gone: the writer ended that commit
+        during the load (and its next journal replaced the arrays). The record has changed then, so
+        :meth:`reread_overwritten` reads every chunk again; the caller raises the error where it did not.
+        """
         self.before_write()
-        for path, rows, values in journal_chunks(group, journal):
-            self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
+        try:
+            for path, rows, values in journal_chunks(group, journal):
+                self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
+        except KeyError as err:
+            return err
+        return None
 
     def reread_overwritten(self, store: Any, group: Any, record: dict, n0: int, *, store_path: Any) -> bool:
         """Reads again, chunk by chunk, the rows a writer may have overwritten during a reader's load.
@@ -462,7 +471,12 @@ class RamMirror:
                 before = now()
                 journal = before.get("journal")
                 prefix = PREFIX if journal and lo // rows in journal["chunks"] else ""
-                values = {path: group[prefix + path][lo:hi] for path in self.schema}
+                try:
+                    values = {path: group[prefix + path][lo:hi] for path in self.schema}
+                except KeyError:  # that journal's arrays are gone: the writer ended its commit meanwhile
+                    if now() == before:
+                        raise
+                    continue
                 if now() == before:
                     break
             else:
