@@ -557,6 +557,31 @@ def test_a_target_spelled_as_a_local_url_lands_at_its_path_and_an_empty_one_is_r
     assert sorted(os.listdir(tmp_path)) == before and os.listdir(cwd) == []
 
 
+def test_a_copy_leaves_partial_files_out_and_refuses_a_file_gone_while_it_copies(tmp_path, monkeypatch, capsys):
+    """Found by a review: a ``*.partial`` file (a write in flight, renamed away any moment, or one a killed writer
+    left) was copied as a file of the store, and a file gone between the listing and its copy failed the copy
+    as ``FileNotFoundError`` instead of saying that a process writes the store."""
+    from torchrl_robotmem.cli import copy_memory
+
+    src = str(tmp_path / "m.zarr")
+    with ZarrStorage(src, 100, env="E", goal_conditioned=False, chunk_rows=4) as st:
+        st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0)}, [10]))
+    left = os.path.join(src, "obs", "c", "0.1234.partial")  # as a killed writer leaves one
+    with open(left, "wb") as f:
+        f.write(b"half a chunk")
+    assert main(["copy", src, str(tmp_path / "c.zarr")]) == 0
+    assert not any(name.endswith(".partial") for _, _, files in os.walk(tmp_path / "c.zarr") for name in files)
+    files = copy_memory._files
+
+    def listed_then_gone(fs, root):  # a file the listing saw, replaced by a writer before its copy
+        return ["obs/c/9.0.partial-gone", *files(fs, root)]
+
+    monkeypatch.setattr(copy_memory, "_files", listed_then_gone)
+    assert main(["copy", src, str(tmp_path / "d.zarr")]) == 2  # as the record changed while copying says it
+    err = capsys.readouterr().err
+    assert "changed while it was copied (a process is writing it" in err, err
+    assert not (tmp_path / "d.zarr").exists()
+
 @pytest.mark.parametrize("kind", ["tensor", "pytree"])
 def test_an_import_of_a_tensor_or_pytree_memory_s_export_succeeds(tmp_path, capsys, kind):
     """Found by a review: the import wrote the memory, then its report read an ``episode`` column such a memory

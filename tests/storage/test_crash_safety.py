@@ -513,6 +513,44 @@ def test_a_reader_whose_pending_journal_ends_during_its_open_serves_whole_rows(t
     st.close()
 
 
+@pytest.mark.parametrize("commit_process", [False, True], ids=["in-process commits", "the commit worker"])
+def test_the_journal_arrays_are_kept_across_writer_sessions(tmp_path, commit_process):
+    """Found by a review: each writer session (and the commit worker's first commit) created the journal arrays
+    anew (``overwrite=True``), deleting them for some milliseconds: the window in which a reader of a pending
+    journal found them gone. An array that fits is reused, never deleted."""
+    path = str(tmp_path / "r.zarr")
+    inodes = []
+    for _ in range(3):
+        with ZarrStorage(path, 16, chunk_rows=4, goal_conditioned=False, commit_process=commit_process) as st:
+            for k in range(0, 40, 8):  # wraps the ring: journalled commits
+                st.set(torch.arange(k, k + 8) % 16, TensorDict({"obs": torch.arange(k, k + 8.0)[:, None]}, [8]))
+                st.flush()
+        meta = os.stat(os.path.join(path, "_journal", "obs", "zarr.json"))
+        inodes.append((meta.st_ino, meta.st_mtime_ns))  # a new array writes its zarr.json anew
+    assert len(set(inodes)) == 1, inodes
+    with ZarrStorage(path, read_only=True) as st:
+        assert st["obs"].flatten().tolist() == [*range(32, 40), *range(24, 32)]
+
+
+def test_a_pending_journal_whose_arrays_are_gone_is_damage(tmp_path, monkeypatch):
+    """With the record unchanged (no writer moved on), a missing journal array is damage, named as such."""
+    from torchrl_robotmem.storage.mirror import RamMirror
+
+    path = str(_crash_mid_wrap(tmp_path))
+    load = RamMirror.load
+
+    def load_then_lose(self, *args, **kwargs):  # after the open's checks, before the journal is read
+        left = load(self, *args, **kwargs)
+        import shutil
+
+        shutil.rmtree(os.path.join(path, "_journal"))
+        return left
+
+    monkeypatch.setattr(RamMirror, "load", load_then_lose)
+    with pytest.raises(IntegrityError, match=r"_journal/\w+.*journal array missing"):
+        ZarrStorage(path, read_only=True)
+
+
 _CONSTANT_JOURNAL_CHILD = """
 import json, os, signal, sys, torch
 from tensordict import NonTensorData, TensorDict

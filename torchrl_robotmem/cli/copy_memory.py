@@ -60,7 +60,8 @@ def _files(fs, root: str) -> list[str]:
         if not p or p.startswith("/") or "\\" in p or any(part in ("", ".", "..") for part in p.split("/")):
             raise CLIError(f"the memory at {root!r} holds a file named {p!r}, which would be written outside the "
                            f"copy ('..', '.', an empty or absolute part): nothing was copied. Remove that key.")
-    rel = [p for p in rel if not p.startswith(ROWS_DIR + "/")]
+    # ``*.partial``: a write in flight (renamed away any moment) or one a killed writer left, never the store's
+    rel = [p for p in rel if not p.startswith(ROWS_DIR + "/") and not p.endswith(".partial")]
     return [p for p in rel if p != _RECORD] + ([_RECORD] if _RECORD in rel else [])
 
 
@@ -76,7 +77,12 @@ def _copy_files(src_fs, src_root: str, files: list[str], dst_fs, dst_root: str) 
         protocols = dst_fs.protocol if isinstance(dst_fs.protocol, tuple) else (dst_fs.protocol,)
         if "file" in protocols:
             os.makedirs(os.path.dirname(target) or ".", exist_ok=True)
-        with src_fs.open(_join(src_root, rel), "rb") as fi, dst_fs.open(target, "wb") as fo:
+        try:
+            fi = src_fs.open(_join(src_root, rel), "rb")
+        except FileNotFoundError:  # listed, then gone: a writer replaced it
+            raise CLIError(f"{src_root!r} changed while it was copied (a process is writing it: {rel!r} is gone); "
+                           f"copy it when no process writes it. Nothing was left at the target") from None
+        with fi, dst_fs.open(target, "wb") as fo:
             shutil.copyfileobj(fi, fo, _BLOCK)
             total += fi.tell()
     return total

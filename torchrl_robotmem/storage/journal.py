@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["OVERWRITES", "PREFIX", "commit", "journal_chunks", "replay_journal"]
+__all__ = ["OVERWRITES", "PREFIX", "JournalArrayMissing", "commit", "journal_chunks", "replay_journal"]
 
 #: the folder of a pending commit's chunks (``_journal/<array path>``)
 PREFIX = "_journal/"
@@ -75,10 +75,7 @@ def commit(group: Any, arrays: dict[str, Any], write_chunks: Callable[..., None]
     if journal is not None:
         for path, shape, dtype in journal:
             jpath = PREFIX + path
-            arr = arrays.get(jpath)
-            if arr is None or list(arr.shape) != list(shape):
-                arrays[jpath] = group.create_array(jpath, shape=tuple(shape), chunks=(chunk_rows, *shape[1:]),
-                                                   dtype=dtype, fill_value=0, overwrite=True)
+            arrays[jpath] = _journal_array(group, arrays.get(jpath), jpath, tuple(shape), np.dtype(dtype), chunk_rows)
         write_chunks(payload, prefix=PREFIX)
         # the journal is complete once this record (with the state it leads to) is committed
         group.update_attributes({"journal": {"chunks": sorted(payload), "meta": meta}})
@@ -90,6 +87,33 @@ def commit(group: Any, arrays: dict[str, Any], write_chunks: Callable[..., None]
         group.update_attributes(update)
 
 
+class JournalArrayMissing(KeyError):
+    """A journal array that a pending ``journal`` record names is not in the store (its ``args[0]``: the path).
+
+    Beside a live writer that is a journal ended and replaced since the record was read; with the record
+    unchanged, damage.
+    """
+
+
+def _journal_array(group: Any, arr: Any, jpath: str, shape: tuple, dtype: np.dtype, chunk_rows: int) -> Any:
+    """The journal array ``jpath`` for rows of ``shape``: the one open or on disk where it fits (grown if the
+    store grew), else created. It is never deleted while it fits: a reader that read a pending journal's record
+    may still be reading its chunks (a chunk file is replaced atomically; only the named chunks are read)."""
+    chunks = (chunk_rows, *shape[1:])
+    if arr is None:
+        try:
+            arr = group[jpath]
+        except Exception:  # noqa: BLE001 - missing, or not an array this can reuse: created below
+            arr = None
+    fits = (arr is not None and getattr(arr, "dtype", None) == dtype and tuple(arr.chunks) == chunks
+            and tuple(arr.shape[1:]) == shape[1:] and arr.shape[0] <= shape[0])
+    if not fits:
+        return group.create_array(jpath, shape=shape, chunks=chunks, dtype=dtype, fill_value=0, overwrite=True)
+    if arr.shape[0] < shape[0]:
+        arr.resize(shape)
+    return arr
+
+
 def journal_chunks(group: Any, journal: dict) -> Iterator[tuple[str, slice, np.ndarray]]:
     """Yields ``(path, row_slice, values)`` for every journalled chunk.
 
@@ -99,7 +123,10 @@ def journal_chunks(group: Any, journal: dict) -> Iterator[tuple[str, slice, np.n
     """
     rows = int(group.attrs["chunk_rows"])
     for path in group.attrs["schema"]:
-        src = group[PREFIX + path]
+        try:
+            src = group[PREFIX + path]
+        except KeyError as err:
+            raise JournalArrayMissing(PREFIX + path) from err
         size = group[path].shape[0]
         for c in journal["chunks"]:
             lo, hi = c * rows, min(c * rows + rows, size)

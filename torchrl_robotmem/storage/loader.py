@@ -24,6 +24,7 @@ import os
 
 from .errors import IntegrityError, Problem
 from .format import chunk_keys, decode_chunks, is_strict
+from .journal import JournalArrayMissing
 
 __all__ = ["BACKGROUND_FILL_BYTES", "BACKGROUND_FILL_ENV", "OPEN_COLUMNS", "fill_in_background", "load_rows"]
 
@@ -91,6 +92,13 @@ def _damaged(handle, mirror, n0: int, failure: tuple | None) -> None:
                                                  "written over.")
 
 
+def missing_journal(path, err: Exception) -> IntegrityError:
+    """The damage of a pending journal whose array ``err`` names is not in the store (and no writer moved on)."""
+    jp = str(err.args[0]) if err.args else "_journal"
+    return IntegrityError(path, [Problem("journal", "journal array missing or unreadable", array=jp,
+                                         key=f"{jp}/zarr.json")], read_only=True)
+
+
 def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> int:
     """Reads the rows of ``attrs`` into the allocated ``mirror``; returns the transitions kept.
 
@@ -115,10 +123,13 @@ def load_rows(handle, mirror, record: dict, attrs: dict, *, on_damage: str) -> i
     n0 = mirror.dim0(n)
     left = mirror.load(handle.group, n0, store_path=handle.path, read_only=read_only, local_dir=handle.local_dir)
     gone = mirror.apply_journal(handle.group, journal) if journal and read_only else None
-    reread = bool(read_only and n0 and mirror.reread_overwritten(handle.store, handle.group, record, n0,
-                                                                  store_path=handle.path))
+    try:
+        reread = bool(read_only and n0 and mirror.reread_overwritten(handle.store, handle.group, record, n0,
+                                                                      store_path=handle.path))
+    except JournalArrayMissing as err:
+        raise missing_journal(handle.path, err) from None
     if gone is not None and not reread:  # the journal's arrays are missing, and no commit replaced them
-        raise gone
+        raise missing_journal(handle.path, gone)
     if n0 and (left or reread):
         # Zarr reads a chunk file that is gone as zeros: one moved away since the open's
         # listing (by `robotmem repair`) is an error here, never zero rows served. The

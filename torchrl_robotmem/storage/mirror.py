@@ -38,7 +38,7 @@ from . import _backend
 from .background_fill import RowFill
 from .fast_read import ChunkReads, read_into
 from .format import read_rows
-from .journal import OVERWRITES, PREFIX, journal_chunks
+from .journal import OVERWRITES, PREFIX, JournalArrayMissing, journal_chunks
 from .layout import PackedLayout
 from .rowfile import RowFile, rows_layout
 from .tags import TAG_KEYS, open_episode_ends
@@ -428,18 +428,18 @@ class RamMirror:
                     read_rows(arrays[path], path, n0, self.chunk_rows, store_path, read_only))
         return left
 
-    def apply_journal(self, group: Any, journal: dict) -> KeyError | None:
+    def apply_journal(self, group: Any, journal: dict) -> JournalArrayMissing | None:
         """A reader applies a pending journal in RAM only.
 
-        Returns ``None``, or the ``KeyError`` of a journal array that is gone: the writer ended that commit
-        during the load (and its next journal replaced the arrays). The record has changed then, so
-        :meth:`reread_overwritten` reads every chunk again; the caller raises the error where it did not.
+        Returns ``None``, or the :class:`~.journal.JournalArrayMissing` of a journal array that is gone: the
+        writer ended that commit during the load. The record has changed then, so :meth:`reread_overwritten`
+        reads every chunk again; the caller reports the damage where it did not.
         """
         self.before_write()
         try:
             for path, rows, values in journal_chunks(group, journal):
                 self._column(path)[rows] = torch.from_numpy(np.ascontiguousarray(values))
-        except KeyError as err:
+        except JournalArrayMissing as err:
             return err
         return None
 
@@ -473,9 +473,11 @@ class RamMirror:
                 prefix = PREFIX if journal and lo // rows in journal["chunks"] else ""
                 try:
                     values = {path: group[prefix + path][lo:hi] for path in self.schema}
-                except KeyError:  # that journal's arrays are gone: the writer ended its commit meanwhile
-                    if now() == before:
+                except KeyError as err:  # that journal's arrays are gone: the writer ended its commit meanwhile
+                    if not prefix:
                         raise
+                    if now() == before:
+                        raise JournalArrayMissing(err.args[0] if err.args else PREFIX) from err
                     continue
                 if now() == before:
                     break
