@@ -308,7 +308,7 @@ def _tree(root) -> list[str]:
 def _chunks_written(directory) -> bool:
     """Whether any chunk file of ``observation`` exists under ``directory`` (a store being built)."""
     try:
-        return bool(os.listdir(os.path.join(directory, "observation", "c")))
+        return any(name.startswith("c.") for name in os.listdir(os.path.join(directory, "observation")))
     except (FileNotFoundError, NotADirectoryError):
         return False
 
@@ -566,7 +566,7 @@ def test_a_copy_leaves_partial_files_out_and_refuses_a_file_gone_while_it_copies
     src = str(tmp_path / "m.zarr")
     with ZarrStorage(src, 100, env="E", goal_conditioned=False, chunk_rows=4) as st:
         st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0)}, [10]))
-    left = os.path.join(src, "obs", "c", "0.1234.partial")  # as a killed writer leaves one
+    left = os.path.join(src, "obs", "c.0.1234.partial")  # as a killed writer leaves one
     with open(left, "wb") as f:
         f.write(b"half a chunk")
     assert main(["copy", src, str(tmp_path / "c.zarr")]) == 0
@@ -574,7 +574,7 @@ def test_a_copy_leaves_partial_files_out_and_refuses_a_file_gone_while_it_copies
     files = copy_memory._files
 
     def listed_then_gone(fs, root):  # a file the listing saw, replaced by a writer before its copy
-        return ["obs/c/9.0.partial-gone", *files(fs, root)]
+        return ["obs/c.9.gone", *files(fs, root)]
 
     monkeypatch.setattr(copy_memory, "_files", listed_then_gone)
     assert main(["copy", src, str(tmp_path / "d.zarr")]) == 2  # as the record changed while copying says it
@@ -610,12 +610,12 @@ def test_copy_of_a_damaged_memory_names_the_source_and_what_mends_it(tmp_path, c
     src = str(tmp_path / "a.zarr")
     with ZarrStorage(src, 100, env="E", goal_conditioned=False) as st:
         st.set(slice(0, 10), TensorDict({"obs": torch.arange(10.0)}, [10]))
-    with open(os.path.join(src, "obs", "c", "0"), "wb") as f:
+    with open(os.path.join(src, "obs", "c.0"), "wb") as f:
         f.write(b"bit rot")  # after the clean close: the row file still serves every row
     capsys.readouterr()
     assert main(["copy", src, str(tmp_path / "b.zarr")]) == 1
     err = capsys.readouterr().err
-    assert f"{src!r} is damaged" in err and "obs/c/0" in err and f"robotmem repair {src}" in err, err
+    assert f"{src!r} is damaged" in err and "obs/c.0" in err and f"robotmem repair {src}" in err, err
     assert "partial" not in err and "run it again" not in err
     assert not os.path.exists(tmp_path / "b.zarr") and sorted(os.listdir(tmp_path)) == ["a.zarr"]
 

@@ -465,7 +465,7 @@ _needs_integrity = pytest.mark.xfail(
 
 
 def _chunk_file(path: Path, array: str = "observation") -> Path:
-    return path / array / "c" / "1" / "0"
+    return path / array / "c.1.0"
 
 
 DAMAGE = [
@@ -473,7 +473,7 @@ DAMAGE = [
      lambda p: (p / "zarr.json").write_bytes(b"\x00\xffnot json")),
     ("zarr-json-truncated", "`zarr.json` truncated to half", r"zarr\.json",
      lambda p: (p / "zarr.json").write_bytes((p / "zarr.json").read_bytes()[: len((p / "zarr.json").read_bytes()) // 2])),
-    ("chunk-deleted", "a chunk file deleted (`observation/c/1/0`)", r"observation.*chunk|chunk.*observation",
+    ("chunk-deleted", "a chunk file deleted (`observation/c.1.0`)", r"observation.*chunk|chunk.*observation",
      lambda p: _chunk_file(p).unlink()),
     ("chunk-truncated", "a chunk file truncated to half", r"observation.*chunk|chunk.*observation",
      lambda p: _chunk_file(p).write_bytes(_chunk_file(p).read_bytes()[: len(_chunk_file(p).read_bytes()) // 2])),

@@ -303,7 +303,7 @@ def test_len_far_past_the_chunk_files_costs_what_the_store_holds(stores):
     before = _hash_tree(stores)
     out = _in_child(a, "verify")
     assert out["result"] == "report" and not out["ok"] and out["rows"] == 10**12, out
-    assert "array 'observation' chunk 5 (observation/c/5/0, rows 320-383): chunk file missing" in out["problems"]
+    assert "array 'observation' chunk 5 (observation/c.5.0, rows 320-383): chunk file missing" in out["problems"]
     assert any("more chunk files missing: the committed length (1000000000000 rows) spans 15625000000 chunks, 5 exist"
                in p for p in out["problems"]), out["problems"]
     out = _in_child(a, "repair")

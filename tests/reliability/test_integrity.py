@@ -107,14 +107,14 @@ def _newer(data):
 
 # name: (damage, what the open error must name, rows intact after repair)
 DAMAGE = {
-    "deleted_chunk": (lambda p: os.remove(os.path.join(p, "observation/c/1/0")),
-                      r"array 'observation' chunk 1 \(observation/c/1/0, rows 64-127\): chunk file missing", 64),
-    "truncated_chunk": (lambda p: _edit(p, "next/observation/c/2/0", lambda d: d[: len(d) // 2]),
-                        r"array 'next/observation' chunk 2 \(next/observation/c/2/0.*checksum", 128),
-    "flipped_byte": (lambda p: _edit(p, "action/c/3/0", _flip),
-                     r"array 'action' chunk 3 \(action/c/3/0, rows 192-255\): checksum mismatch", 192),
+    "deleted_chunk": (lambda p: os.remove(os.path.join(p, "observation/c.1.0")),
+                      r"array 'observation' chunk 1 \(observation/c.1.0, rows 64-127\): chunk file missing", 64),
+    "truncated_chunk": (lambda p: _edit(p, "next/observation/c.2.0", lambda d: d[: len(d) // 2]),
+                        r"array 'next/observation' chunk 2 \(next/observation/c.2.0.*checksum", 128),
+    "flipped_byte": (lambda p: _edit(p, "action/c.3.0", _flip),
+                     r"array 'action' chunk 3 \(action/c.3.0, rows 192-255\): checksum mismatch", 192),
     "len_past_written": (lambda p: _edit(p, "zarr.json", _attr("len", 500)),
-                         r"array '\w+' chunk 5 \(\w+/c/5(/0)?, rows 320-383\): chunk file missing", ROWS),
+                         r"array '\w+' chunk 5 \(\w+/c\.5(\.0)?, rows 320-383\): chunk file missing", ROWS),
     "len_past_max_size": (lambda p: _edit(p, "zarr.json", _attr("len", 5000)),
                           r"attribute 'len' must be an integer in \[0, 1000\], got 5000", ROWS),
     "cursor_past_max_size": (lambda p: _edit(p, "zarr.json", _attr("cursor", 1001)),
@@ -191,7 +191,8 @@ def test_intact_store_verifies_clean_and_writes_every_chunk(store):
     assert report.ok and not report.problems and report.checksums
     assert report.rows == ROWS and report.chunks == report.arrays * 5
     # the all-zero column has its chunk files (otherwise a deleted one could not be told apart)
-    assert sorted(os.listdir(os.path.join(path, "desired_goal/c"))) == ["0", "1", "2", "3", "4"]
+    assert sorted(f for f in os.listdir(os.path.join(path, "desired_goal")) if f != "zarr.json") == \
+        ["c.0.0", "c.1.0", "c.2.0", "c.3.0", "c.4.0"]
     meta = zarr.open_group(path, mode="r").attrs["torchrl_robotmem"]
     assert meta["integrity"] == {"checksum": "crc32c", "empty_chunks": "written"}
     assert repair(path).actions == []
@@ -211,7 +212,7 @@ def test_ring_wraps_through_the_journal_and_stays_intact(tmp_path):
 
 def test_on_damage_warn_reads_the_intact_rows(store):
     path, before = store
-    _edit(path, "action/c/2/0", _flip)
+    _edit(path, "action/c.2.0", _flip)
     with pytest.warns(UserWarning, match=r"(?s)array 'action' chunk 2 .*reading the 128 rows"):
         s = ZarrStorage(path, read_only=True, on_damage="warn")
     assert len(s) == 128 and torch.equal(s["action"][:128], before["action"][:128])
@@ -260,12 +261,12 @@ def test_store_without_checksums_still_opens(store):
 def test_cli_verify_and_repair(store, tmp_path, capsys):
     """``robotmem verify`` / ``repair`` as subprocesses (each starts an interpreter: ~20 s on a loaded box)."""
     path, before = store
-    _edit(path, "observation/c/2/0", lambda d: d[:-7])
+    _edit(path, "observation/c.2.0", lambda d: d[:-7])
     run = [sys.executable, "-m", "torchrl_robotmem"]
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     out = subprocess.run([*run, "verify", path], capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 1, out.stderr
-    assert "array 'observation' chunk 2 (observation/c/2/0, rows 128-191)" in out.stdout
+    assert "array 'observation' chunk 2 (observation/c.2.0, rows 128-191)" in out.stdout
     assert main(["repair", path, "--dry-run"]) == 1 and "would repair" in capsys.readouterr().out
     fixed = subprocess.run([*run, "repair", path, "--json"], capture_output=True, text=True, env=env, timeout=300)
     assert fixed.returncode == 0, fixed.stderr
@@ -284,7 +285,8 @@ def test_key_added_later_writes_its_older_chunks(store):
         rows = _rows(10, ROWS)
         rows["extra"] = torch.ones(10, 2)
         s.set(slice(ROWS, ROWS + 10), rows)
-    assert sorted(os.listdir(os.path.join(path, "extra/c"))) == ["0", "1", "2", "3", "4"]
+    assert sorted(f for f in os.listdir(os.path.join(path, "extra")) if f != "zarr.json") == \
+        ["c.0.0", "c.1.0", "c.2.0", "c.3.0", "c.4.0"]
     with ZarrStorage(path, read_only=True) as s:
         assert not s["extra"][:ROWS].any() and s["extra"][ROWS:].all()
     assert verify(path).ok
@@ -313,7 +315,7 @@ def test_repair_takes_the_writer_lock(store, tmp_path, damaged):
             assert writer.poll() is None, "the writer process died"
             time.sleep(0.05)
         if damaged:  # damage while it writes (a chunk deleted under it)
-            os.remove(os.path.join(path, "action/c/1/0"))
+            os.remove(os.path.join(path, "action/c.1.0"))
         digest = _hash(path)
         with pytest.raises(RuntimeError, match=rf"(?s)robotmem repair needs the store to itself and did not change "
                                                rf"it: .*is writing to .*pid {writer.pid}.*Stop the writer"):
@@ -366,7 +368,7 @@ def test_reader_is_never_served_zeros_for_a_chunk_repair_moves_away(store, tmp_p
     ``IntegrityError`` naming it (or serve the right rows), never serve zeros.
     """
     path, before = store
-    _edit(path, "observation/c/2/0", _flip)  # damage repair will move away
+    _edit(path, "observation/c.2.0", _flip)  # damage repair will move away
     listed, moved = tmp_path / "listed", tmp_path / "moved"
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     reader = subprocess.Popen([sys.executable, "-c", _READER_PAUSED_AFTER_LISTING, path, str(listed), str(moved)],
@@ -376,7 +378,7 @@ def test_reader_is_never_served_zeros_for_a_chunk_repair_moves_away(store, tmp_p
             assert reader.poll() is None, reader.stderr.read()
             time.sleep(0.02)
         result = repair(path)
-        assert any("moved the damaged chunk observation/c/2/0" in a for a in result.actions), str(result)
+        assert any("moved the damaged chunk observation/c.2.0" in a for a in result.actions), str(result)
         moved.touch()
         out, err = reader.communicate(timeout=300)
     finally:
@@ -385,7 +387,7 @@ def test_reader_is_never_served_zeros_for_a_chunk_repair_moves_away(store, tmp_p
     assert reader.returncode == 0, err
     got = json.loads(out.strip().splitlines()[-1])
     if "error" in got:
-        assert re.search(r"array 'observation' chunk 2 \(observation/c/2/0, rows 128-191\): chunk file missing",
+        assert re.search(r"array 'observation' chunk 2 \(observation/c.2.0, rows 128-191\): chunk file missing",
                          got["error"]), got["error"]
         assert "robotmem repair" in got["error"]
     else:  # the right rows (what the store held when the reader's open checked it), nothing invented
@@ -401,9 +403,9 @@ def test_refresh_runs_the_checks_an_open_runs(store):
     reader = ZarrStorage(path, read_only=True)
     assert reader.refresh() == ROWS
     _edit(path, "zarr.json", _attr("len", 390))  # rows 300-389 were never written
-    with pytest.raises(IntegrityError, match=r"array '\w+' chunk 5 \(\w+/c/5(/0)?, rows 320-383\): chunk file missing"):
+    with pytest.raises(IntegrityError, match=r"array '\w+' chunk 5 \(\w+/c\.5(\.0)?, rows 320-383\): chunk file missing"):
         ZarrStorage(path, read_only=True)
-    with pytest.raises(IntegrityError, match=r"array '\w+' chunk 5 \(\w+/c/5(/0)?, rows 320-383\): chunk file missing"):
+    with pytest.raises(IntegrityError, match=r"array '\w+' chunk 5 \(\w+/c\.5(\.0)?, rows 320-383\): chunk file missing"):
         reader.refresh()
     # the handle keeps what it had
     assert len(reader) == ROWS and torch.equal(reader["observation"][:ROWS], before["observation"])

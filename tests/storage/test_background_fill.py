@@ -110,11 +110,11 @@ def test_a_reader_opens_without_reading_and_serves_only_filled_rows(store):
 def test_a_damaged_chunk_is_refused_at_the_first_read_never_served(store):
     """A flipped byte in a chunk: the open returns, and every read of the rows raises the error a synchronous
     open raises (naming the array and the chunk), the sample's and every later one."""
-    target = os.path.join(store, "action", "c", "3", "0")
+    target = os.path.join(store, "action", "c.3.0")
     data = bytearray(open(target, "rb").read())
     data[len(data) // 2] ^= 0x40
     open(target, "wb").write(bytes(data))
-    named = r"array 'action' chunk 3 \(action/c/3/0, rows 192-255\): checksum mismatch"
+    named = r"array 'action' chunk 3 \(action/c.3.0, rows 192-255\): checksum mismatch"
     reader = ZarrStorage(store, read_only=True)
     try:
         with pytest.raises(IntegrityError, match=named):
@@ -132,8 +132,8 @@ def test_a_damaged_chunk_is_refused_at_the_first_read_never_served(store):
 
 def test_a_missing_chunk_file_is_refused_by_the_open_itself(store):
     """The open lists the chunk files of a store it will read (metadata only): a missing one refuses the open."""
-    os.remove(os.path.join(store, "obs", "c", "1", "0"))
-    with pytest.raises(IntegrityError, match=r"array 'obs' chunk 1 \(obs/c/1/0, rows 64-127\): chunk file missing"):
+    os.remove(os.path.join(store, "obs", "c.1.0"))
+    with pytest.raises(IntegrityError, match=r"array 'obs' chunk 1 \(obs/c.1.0, rows 64-127\): chunk file missing"):
         ZarrStorage(store, read_only=True)
 
 
@@ -195,7 +195,7 @@ def test_below_the_threshold_the_open_reads_every_row(store, monkeypatch):
     monkeypatch.setenv(BACKGROUND_FILL_ENV, str(1 << 40))
     with ZarrStorage(store, read_only=True) as reader:
         assert reader._store.mirror.fill is None
-    assert glob.glob(os.path.join(store, "obs", "c", "*"))
+    assert glob.glob(os.path.join(store, "obs", "c.*"))
 
 
 # -- the writer's fill (after a crash, or any open that finds no usable row file) ----------------------------------
@@ -260,13 +260,13 @@ def test_a_writers_open_closes_the_episode_left_open_and_appends_after_it(store,
 def test_a_writers_fill_refuses_a_damaged_chunk_and_keeps_what_it_writes_elsewhere(store, writer_fill):
     """A flipped byte in chunk 3: the open returns; a read or write of that chunk raises, naming it; rows written
     past the opened length are committed all the same (the chunk they go into was filled at the open)."""
-    target = os.path.join(store, "action", "c", "3", "0")
+    target = os.path.join(store, "action", "c.3.0")
     data = bytearray(open(target, "rb").read())
     data[len(data) // 2] ^= 0x40
     open(target, "wb").write(bytes(data))
     writer = _open_writer(store)
     try:
-        with pytest.raises(IntegrityError, match=r"array 'action' chunk 3 \(action/c/3/0, rows 192-255\): checksum mismatch"):
+        with pytest.raises(IntegrityError, match=r"array 'action' chunk 3 \(action/c.3.0, rows 192-255\): checksum mismatch"):
             writer.get(torch.tensor([200]))
         with pytest.raises(IntegrityError, match=r"array 'action' chunk 3"):
             writer.set(torch.tensor([201]), _rows(9000, 9001))
@@ -284,13 +284,13 @@ def test_a_commit_of_a_chunk_the_writers_fill_cannot_read_is_an_error_not_a_hang
     """Every row marked for a commit again (what TorchRL's in-place writes do) while chunk 3 cannot be filled:
     the commit's snapshot of chunk 3 raises; ``flush`` and ``close`` say so (the writer thread used to die there,
     and ``flush`` waited for it forever)."""
-    target = os.path.join(store, "action", "c", "3", "0")
+    target = os.path.join(store, "action", "c.3.0")
     data = bytearray(open(target, "rb").read())
     data[len(data) // 2] ^= 0x40
     open(target, "wb").write(bytes(data))
     writer = _open_writer(store)
     writer._store.mark_rows_dirty(ROWS)
-    with pytest.raises(RuntimeError, match=r"array 'action' chunk 3 \(action/c/3/0, rows 192-255\): checksum mismatch"):
+    with pytest.raises(RuntimeError, match=r"array 'action' chunk 3 \(action/c.3.0, rows 192-255\): checksum mismatch"):
         writer.flush()
     with pytest.raises(RuntimeError, match="chunk 3"):
         writer.close()

@@ -82,7 +82,7 @@ def test_a_failed_write_is_raised_with_its_cause_and_retried_by_flush(tmp_path, 
     rb.extend(make_transitions(10))
     st.flush()
     # a directory where the next chunk file must go: the write fails (in the worker, or here)
-    blocker = tmp_path / "m.zarr" / "observation" / "c" / "1" / "0"
+    blocker = tmp_path / "m.zarr" / "observation" / "c.1.0"
     blocker.mkdir(parents=True)
     rb.extend(make_transitions(100, start=10))
     with pytest.raises(RuntimeError, match=r"background writer .* failed: \w*Error: .*100 rows \(write "

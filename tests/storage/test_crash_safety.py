@@ -403,7 +403,7 @@ orig_write = fast_write.write_file
 written, lock = [], threading.Lock()
 def write_file(root, key, buffers, check=None):
     # the first of these arrays' wrap chunks gets written, the others never do
-    if "/c/" in key and key.split("/c/")[0] in ("action", "value", "observation"):
+    if "/c." in key and key.split("/c.")[0] in ("action", "value", "observation"):
         with open(os.path.join(path, "zarr.json")) as f:
             if json.load(f)["attributes"].get("journal"):  # the wrap commit writes its rows
                 with lock:

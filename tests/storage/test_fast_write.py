@@ -34,12 +34,14 @@ def _values(dtype: np.dtype, shape: tuple, seed: int) -> np.ndarray:
 
 
 def _chunk_files(root, path: str) -> dict[str, bytes]:
+    """The chunk files of array ``path`` (``c/<c>/0`` or ``c.<c>.0``) by name: none is an empty dict."""
     out = {}
-    base = os.path.join(root, path, "c")
+    base = os.path.join(root, path)
     for folder, _, files in os.walk(base):
         for name in files:
             full = os.path.join(folder, name)
-            out[os.path.relpath(full, base)] = open(full, "rb").read()
+            if full != os.path.join(base, "zarr.json"):
+                out[os.path.relpath(full, base)] = open(full, "rb").read()
     return out
 
 
@@ -136,7 +138,8 @@ def test_a_chunk_folder_that_links_outside_the_store_is_refused(tmp_path, link, 
     (tmp_path / "s.zarr").mkdir()
     group = zarr.open_group(_store(tmp_path / "s.zarr", kind), mode="w", zarr_format=3)
     arr = create_arrays(group, {"obs": {"dtype": "float32", "shape": [3]}}, rows=ROWS, inner_shape=(4,),
-                        chunk_rows=CHUNK, compressor="zstd", level=1)["obs"].with_config(ARRAY_CONFIG)
+                        chunk_rows=CHUNK, compressor="zstd", level=1,
+                        separator="/")["obs"].with_config(ARRAY_CONFIG)  # a folder a chunk (stores before 2026-12)
     os.makedirs(tmp_path / "s.zarr" / os.path.dirname(link), exist_ok=True)
     os.symlink(outside, tmp_path / "s.zarr" / link)
     rows = np.ones((CHUNK, 4, 3), "f4")
@@ -150,31 +153,35 @@ def test_a_chunk_folder_that_links_outside_the_store_is_refused(tmp_path, link, 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX symbolic links")
 @pytest.mark.parametrize("kind", ["local", "contained"])
-def test_a_chunk_file_that_is_a_link_is_replaced_not_written_through(tmp_path, kind):
+@pytest.mark.parametrize("separator", ["/", "."], ids=["c/<c>/0", "c.<c>.0"])
+def test_a_chunk_file_that_is_a_link_is_replaced_not_written_through(tmp_path, kind, separator):
     secret = tmp_path / "secret"
     secret.write_bytes(b"private")
     (tmp_path / "s.zarr").mkdir()
     group = zarr.open_group(_store(tmp_path / "s.zarr", kind), mode="w", zarr_format=3)
     arr = create_arrays(group, {"obs": {"dtype": "float32", "shape": [3]}}, rows=ROWS, inner_shape=(),
-                        chunk_rows=CHUNK, compressor=None, level=1)["obs"].with_config(ARRAY_CONFIG)
-    os.makedirs(tmp_path / "s.zarr" / "obs" / "c" / "0")
-    os.symlink(secret, tmp_path / "s.zarr" / "obs" / "c" / "0" / "0")
+                        chunk_rows=CHUNK, compressor=None, level=1, separator=separator)["obs"].with_config(ARRAY_CONFIG)
+    chunk = tmp_path / "s.zarr" / "obs" / ("c/0/0" if separator == "/" else "c.0.0")
+    os.makedirs(chunk.parent, exist_ok=True)
+    os.symlink(secret, chunk)
     write_chunks(lambda p: arr, {0: {"obs": np.ones((CHUNK, 3), "f4")}}, CHUNK)
     assert secret.read_bytes() == b"private"
-    assert not os.path.islink(tmp_path / "s.zarr" / "obs" / "c" / "0" / "0")
+    assert not os.path.islink(chunk) and chunk.is_file()
     assert arr[:CHUNK].tolist() == [[1.0] * 3] * CHUNK
 
 
-def test_every_write_ends_before_the_first_error_is_raised(tmp_path):
+@pytest.mark.parametrize("separator", ["/", "."], ids=["c/<c>/0", "c.<c>.0"])
+def test_every_write_ends_before_the_first_error_is_raised(tmp_path, separator):
     group = zarr.open_group(str(tmp_path / "s.zarr"), mode="w", zarr_format=3)
     arrays = create_arrays(group, {p: {"dtype": "float32", "shape": [3]} for p in ("a", "b", "c")}, rows=ROWS,
-                           inner_shape=(), chunk_rows=CHUNK, compressor="blosc", level=1)
-    (tmp_path / "s.zarr" / "b" / "c" / "0" / "0").mkdir(parents=True)  # a folder where b's chunk 0 must go
+                           inner_shape=(), chunk_rows=CHUNK, compressor="blosc", level=1, separator=separator)
+    name = "c/{}/0" if separator == "/" else "c.{}.0"
+    (tmp_path / "s.zarr" / "b" / name.format(0)).mkdir(parents=True)  # a folder where b's chunk 0 must go
     payload = {c: {p: np.full((CHUNK, 3), c, "f4") for p in arrays} for c in range(2)}
     with pytest.raises(OSError):
         write_chunks(lambda p: arrays[p].with_config(ARRAY_CONFIG), payload, CHUNK, threads=3)
     for p in ("a", "c"):
-        assert sorted(os.listdir(tmp_path / "s.zarr" / p / "c")) == ["0", "1"]
+        assert sorted(_chunk_files(tmp_path / "s.zarr", p)) == [name.format(0), name.format(1)]
     assert not [f for f in _all_files(tmp_path) if f.endswith(".partial")]
 
 

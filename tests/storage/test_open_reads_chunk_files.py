@@ -108,8 +108,8 @@ def test_a_chunk_file_gone_is_left_to_zarr_and_a_changed_one_too(tmp_path):
     with ZarrStorage(path, 1000, chunk_rows=CHUNK) as s:
         s.set(slice(0, n), _rows(n))
     group = zarr.open_group(path, mode="r")
-    os.remove(os.path.join(path, "observation/c/1/0"))
-    chunk = os.path.join(path, "action/c/2/0")
+    os.remove(os.path.join(path, "observation/c.1.0"))
+    chunk = os.path.join(path, "action/c.2.0")
     raw = bytearray(open(chunk, "rb").read())
     raw[len(raw) // 2] ^= 0x10
     open(chunk, "wb").write(bytes(raw))
@@ -123,8 +123,8 @@ def test_a_chunk_file_gone_is_left_to_zarr_and_a_changed_one_too(tmp_path):
 
 @pytest.mark.parametrize("read_only", [True, False])
 @pytest.mark.parametrize("damage, message", [
-    ("flip", r"array 'action' chunk 2 \(action/c/2/0, rows 128-191\): checksum mismatch"),
-    ("truncate", r"array 'observation' chunk 1 \(observation/c/1/0, rows 64-127\).*(checksum|does not decode)"),
+    ("flip", r"array 'action' chunk 2 \(action/c.2.0, rows 128-191\): checksum mismatch"),
+    ("truncate", r"array 'observation' chunk 1 \(observation/c.1.0, rows 64-127\).*(checksum|does not decode)"),
 ])
 def test_damaged_chunk_still_fails_the_open_naming_it(tmp_path, read_only, damage, message):
     path = str(tmp_path / "m.zarr")
@@ -132,7 +132,7 @@ def test_damaged_chunk_still_fails_the_open_naming_it(tmp_path, read_only, damag
     with ZarrStorage(path, 1000, chunk_rows=CHUNK) as s:
         s.set(slice(0, n), _rows(n))
     remove_rows(path)  # the open reads the chunks (a sealed row file serves without them: tests/storage/test_row_tier.py)
-    rel = "action/c/2/0" if damage == "flip" else "observation/c/1/0"
+    rel = "action/c.2.0" if damage == "flip" else "observation/c.1.0"
     full = os.path.join(path, rel)
     raw = bytearray(open(full, "rb").read())
     if damage == "flip":
@@ -160,11 +160,11 @@ def test_chunk_gone_after_the_listing_is_an_error_not_zeros(tmp_path, monkeypatc
 
     def then_remove(*args, **kwargs):
         out = check_open(*args, **kwargs)
-        os.remove(os.path.join(path, "next/reward/c/3/0"))
+        os.remove(os.path.join(path, "next/reward/c.3.0"))
         return out
 
     monkeypatch.setattr(integrity, "check_open", then_remove)
     assert handle.integrity is integrity  # the module the open checks through
-    with pytest.raises(IntegrityError, match=r"array 'next/reward' chunk 3 \(next/reward/c/3/0, rows 192-255\): "
+    with pytest.raises(IntegrityError, match=r"array 'next/reward' chunk 3 \(next/reward/c.3.0, rows 192-255\): "
                                              r"chunk file missing"):
         ZarrStorage(path, read_only=read_only)

@@ -86,3 +86,52 @@ def test_store_from_another_zarr_takes_new_rows(tarball, tmp_path):
     assert torch.equal(tail["observation"], extra["observation"])
     assert isinstance(tail, TensorDict)
     st.close()
+
+
+def _layout(path: pathlib.Path, column: str) -> str:
+    folder = path / column
+    names = {p.name for p in folder.iterdir()}
+    return "c/<c>/0" if "c" in names else "c.<c>.0" if any(n.startswith("c.") for n in names) else "none"
+
+
+@pytest.mark.parametrize("tarball", TARBALLS, ids=[p.name for p in TARBALLS])
+def test_a_column_added_to_a_store_of_a_folder_a_chunk_follows_its_layout(tarball, tmp_path):
+    """Stores created before 2026-12 hold a folder a chunk (``c/<c>/0``); a store created now holds the chunk files
+    in their column's folder (``c.<c>.0``: one inode a chunk, not two). A column added to an older store takes its
+    layout, so one store has one layout."""
+    path, _ = _extract(tarball, tmp_path)
+    assert _layout(path, "observation") == "c/<c>/0"
+    wider = FIX.expected_rows()[:20]
+    wider["extra"] = torch.ones(20, 2)
+    with ZarrStorage(path, env=FIX.ENV, background=False) as st:
+        st.set(torch.arange(FIX.ROWS, FIX.ROWS + 20), wider)
+    assert _layout(path, "extra") == "c/<c>/0" and verify(path).ok
+    with ZarrStorage(path, read_only=True) as st:
+        assert torch.equal(st["extra"][FIX.ROWS:FIX.ROWS + 20], torch.ones(20, 2))
+        assert st["extra"][: FIX.ROWS].abs().sum() == 0
+    fresh = tmp_path / "fresh.zarr"
+    with ZarrStorage(fresh, 256, env=FIX.ENV, chunk_rows=64, background=False) as st:
+        st.set(torch.arange(20), FIX.expected_rows()[:20])
+        st.set(torch.arange(20, 40), wider)
+    assert _layout(fresh, "observation") == _layout(fresh, "extra") == "c.<c>.0"
+    assert not [p for p in fresh.rglob("*") if p.is_dir() and p.name == "c"]
+
+
+@pytest.mark.parametrize("layout", ["c/<c>/0", "c.<c>.0"])
+def test_repair_rebuilds_a_lost_array_description_in_either_layout(tmp_path, layout):
+    """``repair`` rebuilds an array's lost ``zarr.json`` from its chunk files, whose names tell the layout."""
+    from torchrl_robotmem.storage.integrity import repair
+
+    if layout == "c/<c>/0":
+        path, _ = _extract(TARBALLS[-1], tmp_path)
+    else:
+        path = tmp_path / "fresh.zarr"
+        FIX.write(path)
+    assert _layout(path, "observation") == layout
+    (path / "observation" / "zarr.json").unlink()
+    assert not verify(path).ok
+    repair(path)
+    assert verify(path).ok
+    with ZarrStorage(path, read_only=True) as st:
+        assert len(st) == FIX.ROWS
+        assert torch.equal(st["observation"][: FIX.ROWS], FIX.expected_rows()["observation"])

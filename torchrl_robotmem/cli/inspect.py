@@ -189,10 +189,10 @@ def _schema(storage, schema: dict) -> list[dict[str, Any]]:
 
 
 def _dir_bytes(directory: str) -> int:
-    """Bytes of one Zarr array's directory (its chunks under ``c/`` and its ``zarr.json``)."""
-    meta = os.path.join(directory, "zarr.json")
-    total = os.path.getsize(meta) if os.path.exists(meta) else 0
-    for root, _, files in os.walk(os.path.join(directory, "c")):
+    """Bytes of one Zarr array's directory: its ``zarr.json`` and its chunk files (``c.<c>.0``, or ``c/<c>/0`` in
+    a store created before 2026-12)."""
+    total = 0
+    for root, _, files in os.walk(directory):
         total += sum(os.path.getsize(os.path.join(root, f)) for f in files)
     return total
 

@@ -591,9 +591,11 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
     write goes into an existing file (Zarr and the journal write a new file and rename it into place),
     so a write never reaches the file's other names.
 
-    ``chunks``: ``True`` walks everything; ``False`` skips the chunk folders (``c/``) of the columns (not of
-    the ``_``-named folders: the journal, a component's group), which an open served by a sealed row file
-    never reads (:mod:`.rowfile`); ``None`` walks only those chunk folders (checked before they are read).
+    ``chunks``: ``True`` walks everything; ``False`` skips the columns' chunks (not those of the ``_``-named
+    folders: the journal, a component's group), which an open served by a sealed row file never reads
+    (:mod:`.rowfile`): the chunk folders (``c/``) of a store created before 2026-12 and the chunk files
+    (``c.<c>.0``) of one created since, in their column's folder; ``None`` walks only those chunks (checked
+    before they are read). A link in place of a whole ``c/`` folder is reported by every walk.
 
     Example:
         >>> import os, tempfile
@@ -601,6 +603,9 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
         >>> os.makedirs(d + "/obs/c"); os.symlink("/etc/hostname", d + "/obs/c/0")
         >>> links_below(d), links_below(d, chunks=False), links_below(d, chunks=None)
         ([('obs/c/0', '/etc/hostname')], [], [('obs/c/0', '/etc/hostname')])
+        >>> os.makedirs(d + "/act"); os.symlink("/etc/hostname", d + "/act/c.0.0")
+        >>> links_below(d, chunks=False), links_below(d, chunks=None)[0]
+        ([], ('act/c.0.0', '/etc/hostname'))
     """
     root = os.fspath(directory)
     out, stack = [], [(root, False, False)]  # (folder, in a column's chunk folder, in a "_" folder)
@@ -615,6 +620,12 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
             # a column's chunk folder: "c" in a node's folder, itself no node (no zarr.json of its own)
             chunk_folder = in_chunks or (not inside and entry.name == "c" and folder != root
                                          and not os.path.lexists(os.path.join(entry.path, "zarr.json")))
+            # a column's chunk file ("c.<c>.0" in its folder; a folder of that name is a node, or no chunk)
+            chunk_file = (not chunk_folder and not inside and folder != root and entry.name.startswith("c.")
+                          and not entry.is_dir(follow_symlinks=False))
+            if chunk_file and chunks is False:
+                continue
+            chunk_folder = chunk_folder or chunk_file
             if entry.is_symlink():
                 if chunks is not None or chunk_folder:
                     try:
@@ -667,7 +678,8 @@ def remove_partial_files(directory: Path, attrs: dict) -> int:
     ``zarr.json``), the ``_``-named groups (the journal, the priorities), and the chunk folders of the rows
     past the committed length or of the chunks a pending journal lists. Those are listed here; the other
     chunk folders are not (that would be a listing per chunk at every open): a partial file elsewhere is
-    never read as a chunk (only wasted space) and ``robotmem repair`` removes it.
+    never read as a chunk (only wasted space) and ``robotmem repair`` removes it. The chunk files of a column
+    created since 2026-12 (``c.<c>.0``) lie in its own folder, which is listed whole.
 
     Only called by the lock holder at its open, before its first write: no partial file of a live write
     exists then. Returns how many were deleted.

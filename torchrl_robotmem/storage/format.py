@@ -6,7 +6,8 @@ What every part that reads or writes a store's arrays must agree on, in one plac
   integrity record (:data:`MARKER`: checksummed chunks, all-zero chunks written);
 * the store's own folders (``_journal``, ``_repair_backup``), which no array path may use;
 * the row layout: a committed length along the first dimension (:func:`dims`),
-  one chunk file per ``chunk_rows`` rows (:func:`chunk_keys`, :func:`row_chunk_key`);
+  one chunk file per ``chunk_rows`` rows (:func:`chunk_keys`, :func:`row_chunk_key`), named
+  ``<column>/c.<c>.0`` (:data:`CHUNK_KEY_SEPARATOR`; ``<column>/c/<c>/0`` in stores created before);
 * writing: every chunk, an all-zero one too (:func:`writing_config`,
   :func:`writing_handles`, :func:`write_zero_chunks`), so a chunk file missing
   below the committed length is damage, never "all zeros";
@@ -33,10 +34,10 @@ import zarr
 from .errors import IntegrityError, Problem
 
 __all__ = [
-    "ARRAY_CONFIG", "BACKUP_DIR", "BOUNDED_FORMAT", "FORMAT_MARKER", "FORMAT_VERSION", "JOURNAL_DIR", "MARKER",
-    "RESERVED", "UNBOUNDED", "UNBOUNDED_SIZE", "grown_size",
-    "chunk_keys", "classify_read_error", "decode_chunks", "dims", "is_strict", "numel", "read_error", "read_rows",
-    "row_chunk_key", "write_zero_chunks", "writing_config", "writing_handles",
+    "ARRAY_CONFIG", "BACKUP_DIR", "BOUNDED_FORMAT", "CHUNK_KEY_SEPARATOR", "FORMAT_MARKER", "FORMAT_VERSION",
+    "JOURNAL_DIR", "MARKER", "RESERVED", "UNBOUNDED", "UNBOUNDED_SIZE", "grown_size",
+    "chunk_keys", "chunk_separator", "classify_read_error", "decode_chunks", "dims", "is_strict", "numel",
+    "read_error", "read_rows", "row_chunk_key", "write_zero_chunks", "writing_config", "writing_handles",
 ]
 
 #: the newest format this library reads and writes; bump on any change readers must know about.
@@ -55,6 +56,9 @@ FORMAT_MARKER = "torchrl_robotmem"
 MARKER = {"checksum": "crc32c", "empty_chunks": "written"}
 #: the Zarr array config every writing handle uses: all-zero chunks are written too
 ARRAY_CONFIG = {"write_empty_chunks": True}
+#: the chunk key separator of the columns a store is created with: ``<column>/c.<c>.0``, one file a chunk
+#: and no folder a chunk (stores created before 2026-12 have ``"/"``: ``<column>/c/<c>/0``; both are read)
+CHUNK_KEY_SEPARATOR = "."
 #: where a pending commit's chunks wait (``_journal/<array path>``)
 JOURNAL_DIR = "_journal"
 #: where ``repair`` keeps what it replaced (``_repair_backup/<time>/``)
@@ -117,6 +121,18 @@ def dims(attrs: dict) -> tuple[int, int, tuple[int, ...]]:
 
 
 # -- chunks -----------------------------------------------------------------------------
+
+
+def chunk_separator(arr: Any) -> str:
+    """The chunk key separator of a Zarr v3 array: ``"."`` (``c.<c>.0``) or ``"/"`` (``c/<c>/0``).
+
+    Example:
+        >>> import zarr
+        >>> arr = zarr.create_array(zarr.storage.MemoryStore(), shape=(4,), chunks=(2,), dtype="f4")
+        >>> chunk_separator(arr)
+        '/'
+    """
+    return str(getattr(arr.metadata.chunk_key_encoding, "separator", "/"))
 
 
 def chunk_keys(arr: Any, path: str, c: int) -> list[str]:

@@ -53,7 +53,7 @@ from torch.utils._pytree import tree_flatten, tree_unflatten, treespec_dumps, tr
 
 from . import _backend
 from .context import user_stacklevel
-from .format import ARRAY_CONFIG, UNBOUNDED, write_zero_chunks
+from .format import ARRAY_CONFIG, CHUNK_KEY_SEPARATOR, UNBOUNDED, chunk_separator, write_zero_chunks
 from .layout import PackedLayout
 from .tags import TAG_KEYS
 
@@ -347,11 +347,14 @@ def default_chunk_rows(row_bytes: int, max_dim0: int) -> int:
 
 
 def create_arrays(group: Any, schema: dict[str, dict], *, rows: int, inner_shape: tuple, chunk_rows: int,
-                  compressor: str | None, level: int, unbounded: bool = False) -> dict[str, Any]:
+                  compressor: str | None, level: int, unbounded: bool = False,
+                  separator: str = CHUNK_KEY_SEPARATOR) -> dict[str, Any]:
     """Creates (replacing) one Zarr array per column of ``schema``; returns them by path.
 
     Every chunk is written, an all-zero one too (:data:`~.format.ARRAY_CONFIG`): a
-    missing chunk file is damage.
+    missing chunk file is damage. Chunk ``c`` of a column is the file ``<column>/c.<c>.0``
+    (Zarr v3's default chunk key encoding with the ``"."`` separator: one file a chunk in the
+    column's folder, no folder a chunk); stores created before keep ``<column>/c/<c>/0``.
 
     Args:
         group: the store's Zarr group.
@@ -366,6 +369,8 @@ def create_arrays(group: Any, schema: dict[str, dict], *, rows: int, inner_shape
         unbounded (bool): the memory has no declared capacity. Each array then says so in its own
             attributes (``{"unbounded": true}``), beside the commit record's flag: ``robotmem repair``
             reads it when the record is lost, so a rebuilt memory grows again instead of wrapping.
+        separator (str): ``"."`` (the default: flat chunk files) or ``"/"`` (a folder a chunk, as the
+            columns of a store created before: a column added to one follows them).
     """
     out = {}
     attributes = {UNBOUNDED: True} if unbounded else None
@@ -376,6 +381,7 @@ def create_arrays(group: Any, schema: dict[str, dict], *, rows: int, inner_shape
             path, shape=shape, chunks=(chunk_rows, *shape[1:]), dtype=dtype,
             compressors=_backend.make_compressors(compressor, level, dtype.itemsize),
             fill_value=0, overwrite=True, config=ARRAY_CONFIG, attributes=attributes,
+            chunk_key_encoding={"name": "default", "separator": separator},
         )
     return out
 
@@ -475,9 +481,11 @@ class StoreSchema:
 
     def _create_arrays(self, schema: dict[str, dict], *, filled: int | None) -> None:
         m = self.mirror
+        held = [p for p in (m.schema or {}) if p not in schema]  # a column added: as the store's others
+        separator = chunk_separator(self.handle.group[held[0]]) if filled is not None and held else CHUNK_KEY_SEPARATOR
         arrays = create_arrays(self.handle.group, schema, rows=m.max_dim0, inner_shape=m.inner_shape,
                                chunk_rows=m.chunk_rows, compressor=self.compressor, level=self.level,
-                               unbounded=m.unbounded)
+                               unbounded=m.unbounded, separator=separator)
         self.arrays.update(arrays)
         if filled is not None:  # keys added later: their older rows are zeros, in chunk files
             for arr in arrays.values():

@@ -30,7 +30,16 @@ from zarr.storage import MemoryStore
 from ..._version import __version__
 from .. import _backend
 from ..errors import IntegrityError, NotAMemoryError, Problem
-from ..format import BOUNDED_FORMAT, FORMAT_MARKER, FORMAT_VERSION, MARKER, UNBOUNDED, decode_chunks, dims
+from ..format import (
+    BOUNDED_FORMAT,
+    CHUNK_KEY_SEPARATOR,
+    FORMAT_MARKER,
+    FORMAT_VERSION,
+    MARKER,
+    UNBOUNDED,
+    decode_chunks,
+    dims,
+)
 from ..schema import DataKind
 from .arrays import check_arrays
 from .chunks import list_keys, present_chunks
@@ -158,7 +167,9 @@ def rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | None
     dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
     shape = (max_dim0, *inner, *spec["shape"])
     chunks = (int(attrs["chunk_rows"]), *shape[1:])
-    keys = sorted(k for k in list_keys(store, local_dir, path) if k.startswith(f"{path}/c/"))[:3]
+    keys = sorted(k for k in list_keys(store, local_dir, path) if k.startswith((f"{path}/c/", f"{path}/c.")))[:3]
+    # the chunk files tell the key encoding: c/<c>/0 (a store created before 2026-12) or c.<c>.0
+    separator = "." if keys and keys[0].startswith(f"{path}/c.") else CHUNK_KEY_SEPARATOR if not keys else "/"
     first = None
     for key in keys or [None]:
         raw = get_bytes(store, key) if key is not None else None
@@ -166,14 +177,15 @@ def rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | None
             for comp in ("blosc", "zstd", None):
                 mem = MemoryStore()
                 arr = zarr.create_array(mem, name="a", shape=shape, chunks=chunks, dtype=dtype, fill_value=0,
-                                        compressors=_backend.make_compressors(comp, 1, dtype.itemsize, checksum=checksum))
+                                        compressors=_backend.make_compressors(comp, 1, dtype.itemsize, checksum=checksum),
+                                        chunk_key_encoding={"name": "default", "separator": separator})
                 meta = get_bytes(mem, "a/zarr.json")
                 if raw is None:
                     return meta  # no chunk file to decode: the schema's description, checksummed
                 first = first or meta
                 rel = key[len(path) + 1:]
                 set_bytes(mem, f"a/{rel}", raw)
-                c = int(rel.split("/")[1])
+                c = int(rel.split(separator)[1])
                 try:
                     arr[c * chunks[0]:(c + 1) * chunks[0]]
                     return meta

@@ -11,7 +11,7 @@ Example:
     >>> path = tempfile.mkdtemp() + "/memory.zarr"
     >>> with ZarrStorage(path, 100, chunk_rows=4) as storage:
     ...     storage.set(slice(0, 10), TensorDict({"obs": torch.ones(10, 3)}, [10]))
-    >>> os.remove(os.path.join(path, "obs", "c", "1", "0"))  # rows 4-7
+    >>> os.remove(os.path.join(path, "obs", "c.1.0"))  # rows 4-7
     >>> report = repair(path)
     >>> report.ok, report.after.rows
     (True, 4)
