@@ -227,28 +227,37 @@ def test_hard_links_share_no_write(folder):
 # -- a writer whose open walked no chunk folder ---------------------------------------------------
 
 
-@pytest.mark.parametrize("commit_process", [False, True], ids=["in-process", "commit-worker"])
-def test_a_link_where_a_sealed_writer_writes_next_is_replaced_never_followed(tmp_path, commit_process):
-    """A sealed writer's open reads no chunk, so it does not look at the chunk files for links. A chunk file is
-    written as a temporary file in its column's folder (checked: no link on the way, storage/contained.py),
-    then renamed over the chunk's name: a link there is replaced, what it names is never written. (A store
-    created before 2026-12 has a folder a chunk: a link in place of one refuses the write, naming it;
-    test_fast_write.py covers that layout.)"""
+@pytest.mark.parametrize("read_only", [True, False], ids=["reader", "writer"])
+def test_a_link_at_a_chunk_files_name_is_refused_by_a_sealed_open(tmp_path, read_only):
+    """A sealed open reads no chunk, but it lists each column's folder, where a store created since 2026-12 keeps
+    its chunk files (``c.<c>.0``): a link there is refused at once, naming it, as a link anywhere else is. (In a
+    store of a folder a chunk, the sealed open does not walk the ``c/`` folders; a write looks at each folder it
+    goes into: test_fast_write.py. A link at a chunk's name is replaced by a write, never followed: same file.)"""
     path, outside = tmp_path / "a.zarr", tmp_path / "elsewhere"
     outside.mkdir()
-    (outside / "secret").write_bytes(b"not the store's")
+    (outside / "secret").write_bytes(SECRET)
     with ZarrStorage(str(path), MAX, chunk_rows=CHUNK) as s:
         s.set(slice(0, ROWS), _rows(ROWS, 0.0))
-    link = path / "observation" / f"c.{ROWS // CHUNK}.0"  # the file of the next chunk
-    os.symlink(outside / "secret", link)
-    s = ZarrStorage(str(path), MAX, commit_process=commit_process)
-    assert s.row_file["sealed"] is True  # the open served the rows from the sealed file: no chunk looked at
-    s.set(slice(ROWS, ROWS + 4), _rows(4, 100.0))
-    s.close()
-    assert (outside / "secret").read_bytes() == b"not the store's" and os.listdir(outside) == ["secret"]
-    assert not link.is_symlink() and link.is_file()
-    with ZarrStorage(str(path), read_only=True) as r:
-        assert len(r) == ROWS + 4 and r[ROWS]["observation"].tolist() == [100.0] * 3
+    name = f"observation/c.{ROWS // CHUNK}.0"  # the file of the next chunk
+    os.symlink(outside / "secret", path / name)
+    before = _hash_tree(path)
+    with pytest.raises(LinkError, match=re.escape(name)):
+        ZarrStorage(str(path), read_only=read_only)
+    assert (outside / "secret").read_bytes() == SECRET and _hash_tree(path) == before
+
+
+@pytest.mark.parametrize("read_only", [True, False], ids=["reader", "writer"])
+def test_a_nested_column_named_like_a_chunk_file_replaced_by_a_link_is_refused(tmp_path, read_only):
+    """Found by a review: a link in place of the folder of a nested column named ``c.<...>`` (one moved to another
+    disk, a hostile store) was taken for a chunk file by the sealed open's walk and skipped; the open then read
+    the column's ``zarr.json`` through it."""
+    path, elsewhere = tmp_path / "a.zarr", tmp_path / "other_disk"
+    with ZarrStorage(str(path), MAX, chunk_rows=CHUNK, goal_conditioned=False) as s:
+        s.set(slice(0, 10), TensorDict({"obs": torch.zeros(10, 2), "next": {"c.x": torch.ones(10, 2)}}, [10]))
+    shutil.move(path / "next" / "c.x", elsewhere)
+    os.symlink(elsewhere, path / "next" / "c.x")
+    with pytest.raises(LinkError, match=re.escape("next/c.x")):
+        ZarrStorage(str(path), read_only=read_only)
 
 
 # -- found by a review of every command (2026-11-29): writes that left the store ------------------------------

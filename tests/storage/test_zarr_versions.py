@@ -129,9 +129,25 @@ def test_repair_rebuilds_a_lost_array_description_in_either_layout(tmp_path, lay
         FIX.write(path)
     assert _layout(path, "observation") == layout
     (path / "observation" / "zarr.json").unlink()
+    for stray in ("c.foo", "c.0.0.orig", "c.1.0.1234.partial"):  # no chunk's name: never decoded as one
+        (path / "observation" / stray).write_bytes(b"not a chunk")
     assert not verify(path).ok
     repair(path)
     assert verify(path).ok
     with ZarrStorage(path, read_only=True) as st:
         assert len(st) == FIX.ROWS
         assert torch.equal(st["observation"][: FIX.ROWS], FIX.expected_rows()["observation"])
+
+
+def test_repair_keeps_a_column_named_c_when_the_record_is_lost(tmp_path):
+    """Found by a review: the listing of the arrays skipped every folder named ``c`` (a chunk folder of a store of
+    a folder a chunk), a column named ``c`` too: a lost record was rebuilt without it."""
+    from torchrl_robotmem.storage.integrity import repair
+
+    path = tmp_path / "m.zarr"
+    with ZarrStorage(path, 64, chunk_rows=16, goal_conditioned=False, env="E") as st:
+        st.set(slice(0, 20), TensorDict({"c": torch.arange(20.0)[:, None], "obs": torch.ones(20, 2)}, [20]))
+    (path / "zarr.json").unlink()  # the record lost
+    repair(path)
+    with ZarrStorage(path, read_only=True) as st:
+        assert "c" in st.schema and torch.equal(st["c"][:20].flatten(), torch.arange(20.0))

@@ -591,11 +591,12 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
     write goes into an existing file (Zarr and the journal write a new file and rename it into place),
     so a write never reaches the file's other names.
 
-    ``chunks``: ``True`` walks everything; ``False`` skips the columns' chunks (not those of the ``_``-named
-    folders: the journal, a component's group), which an open served by a sealed row file never reads
-    (:mod:`.rowfile`): the chunk folders (``c/``) of a store created before 2026-12 and the chunk files
-    (``c.<c>.0``) of one created since, in their column's folder; ``None`` walks only those chunks (checked
-    before they are read). A link in place of a whole ``c/`` folder is reported by every walk.
+    ``chunks``: ``True`` walks everything; ``False`` skips the columns' chunk folders (``c/``, in a store
+    created before 2026-12; not those of the ``_``-named folders: the journal, a component's group), which an
+    open served by a sealed row file never reads (:mod:`.rowfile`); ``None`` walks only the columns' chunks
+    (checked before they are read): those folders and the chunk files (``c.<c>.0``) of a store created since,
+    which lie in their column's folder. A ``False`` walk lists that folder anyway, so it reports a link or
+    special file at a chunk's name too; a link in place of a whole ``c/`` folder is reported by every walk.
 
     Example:
         >>> import os, tempfile
@@ -605,7 +606,7 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
         ([('obs/c/0', '/etc/hostname')], [], [('obs/c/0', '/etc/hostname')])
         >>> os.makedirs(d + "/act"); os.symlink("/etc/hostname", d + "/act/c.0.0")
         >>> links_below(d, chunks=False), links_below(d, chunks=None)[0]
-        ([], ('act/c.0.0', '/etc/hostname'))
+        ([('act/c.0.0', '/etc/hostname')], ('act/c.0.0', '/etc/hostname'))
     """
     root = os.fspath(directory)
     out, stack = [], [(root, False, False)]  # (folder, in a column's chunk folder, in a "_" folder)
@@ -623,8 +624,6 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
             # a column's chunk file ("c.<c>.0" in its folder; a folder of that name is a node, or no chunk)
             chunk_file = (not chunk_folder and not inside and folder != root and entry.name.startswith("c.")
                           and not entry.is_dir(follow_symlinks=False))
-            if chunk_file and chunks is False:
-                continue
             chunk_folder = chunk_folder or chunk_file
             if entry.is_symlink():
                 if chunks is not None or chunk_folder:

@@ -96,7 +96,9 @@ def array_metas(store: Any, local_dir: Any) -> list[str]:
     if local_dir is not None:
         keys = set()
         for dirpath, dirs, files in os.walk(os.fspath(local_dir)):
-            dirs[:] = [d for d in dirs if d not in (JOURNAL_DIR, BACKUP_DIR, "c")]
+            # a column's chunk folder ("c" with no zarr.json of its own: a node may be named "c" too)
+            dirs[:] = [d for d in dirs if d not in (JOURNAL_DIR, BACKUP_DIR)
+                       and not (d == "c" and not os.path.lexists(os.path.join(dirpath, d, "zarr.json")))]
             if "zarr.json" in files and os.path.abspath(dirpath) != os.path.abspath(os.fspath(local_dir)):
                 keys.add(os.path.relpath(dirpath, os.fspath(local_dir)).replace(os.sep, "/"))
         return sorted(keys)
@@ -105,7 +107,7 @@ def array_metas(store: Any, local_dir: Any) -> list[str]:
         return [k async for k in store.list_prefix("")]
 
     return sorted({k[: -len("/zarr.json")] for k in zarr_sync(_collect())
-                   if k.endswith("/zarr.json") and "/c/" not in k
+                   if k.endswith("/zarr.json")  # never a chunk key (its parts after "c" are numbers)
                    and not k.startswith((JOURNAL_DIR + "/", BACKUP_DIR + "/"))})
 
 

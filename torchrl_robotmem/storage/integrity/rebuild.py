@@ -154,6 +154,16 @@ def rebuild_attrs(store, local_dir) -> dict:
             **({UNBOUNDED: True} if unbounded else {})}
 
 
+def _chunk_separator(rel: str) -> str | None:
+    """``"/"`` or ``"."``: the separator of a chunk file's name below its array (``c/3/0``, ``c.3.0``), else ``None``
+    (``zarr.json``, a stray or ``.partial`` file)."""
+    for sep in ("/", "."):
+        head, *parts = rel.split(sep)
+        if head == "c" and parts and all(p.isdigit() for p in parts):
+            return sep
+    return None
+
+
 def rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | None:
     """``zarr.json`` of array ``path`` from the schema, with the codecs its chunks decode with.
 
@@ -167,9 +177,9 @@ def rebuild_array_meta(store, local_dir, path: str, attrs: dict) -> bytes | None
     dtype = _backend.numpy_dtype(_backend.torch_dtype(spec["dtype"]))
     shape = (max_dim0, *inner, *spec["shape"])
     chunks = (int(attrs["chunk_rows"]), *shape[1:])
-    keys = sorted(k for k in list_keys(store, local_dir, path) if k.startswith((f"{path}/c/", f"{path}/c.")))[:3]
     # the chunk files tell the key encoding: c/<c>/0 (a store created before 2026-12) or c.<c>.0
-    separator = "." if keys and keys[0].startswith(f"{path}/c.") else CHUNK_KEY_SEPARATOR if not keys else "/"
+    keys = sorted(k for k in list_keys(store, local_dir, path) if _chunk_separator(k[len(path) + 1:]))[:3]
+    separator = _chunk_separator(keys[0][len(path) + 1:]) if keys else CHUNK_KEY_SEPARATOR
     first = None
     for key in keys or [None]:
         raw = get_bytes(store, key) if key is not None else None
