@@ -260,6 +260,53 @@ def test_a_nested_column_named_like_a_chunk_file_replaced_by_a_link_is_refused(t
         ZarrStorage(str(path), read_only=read_only)
 
 
+@pytest.mark.parametrize("what", ["a link", "a named pipe"])
+def test_a_group_named_c_that_lost_its_zarr_json_is_walked_by_a_sealed_open(tmp_path, what):
+    """Found by a review: a folder named ``c`` with no ``zarr.json`` was taken for a column's chunk folder and not
+    walked by a sealed open, a group named ``c`` that lost its ``zarr.json`` too: a link in it was read through (a
+    named pipe there blocked the writable open for ever). What in a ``c/`` folder is no chunk's name is walked."""
+    from torchrl_robotmem.storage._backend import links_below
+
+    path, elsewhere = tmp_path / "a.zarr", tmp_path / "other_disk"
+    with ZarrStorage(str(path), MAX, chunk_rows=CHUNK, goal_conditioned=False) as s:
+        s.set(slice(0, 10), TensorDict({"obs": torch.zeros(10, 2), "next": {"c": {"x": torch.ones(10, 2)}}}, [10]))
+    (path / "next" / "c" / "zarr.json").unlink()
+    if what == "a link":
+        shutil.move(path / "next" / "c" / "x", elsewhere)
+        os.symlink(elsewhere, path / "next" / "c" / "x")
+        name = "next/c/x"
+    else:
+        (path / "next" / "c" / "x" / "zarr.json").unlink()
+        os.mkfifo(path / "next" / "c" / "x" / "zarr.json")
+        name = "next/c/x/zarr.json"
+    assert [k for k, _ in links_below(path, chunks=False)] == [name]
+    for read_only in (True, False):
+        with pytest.raises(LinkError, match=re.escape(name)):
+            ZarrStorage(str(path), read_only=read_only)
+
+
+@pytest.mark.parametrize("target", ["a file", "a folder"])
+def test_a_checkpoint_of_a_store_holding_a_link_is_refused(tmp_path, target):
+    """Found by a review: ``ZarrCheckpointer`` copied the store with ``shutil.copytree``, which followed a link made
+    after the open (a folder's files, or across filesystems a file's bytes, landed in the checkpoint as the
+    store's own). A store holding a link anywhere is refused, naming it, and nothing is copied."""
+    path, outside = tmp_path / "a.zarr", tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "secret").write_bytes(SECRET)
+    storage = ZarrStorage(str(path), MAX, chunk_rows=CHUNK)
+    rb = TensorDictReplayBuffer(storage=storage, batch_size=4)
+    rb.extend(_rows(ROWS, 0.0))
+    storage.flush()
+    name = f"observation/c.{ROWS // CHUNK + 1}" + (".0" if target == "a file" else "")
+    os.symlink(outside / "secret" if target == "a file" else outside, path / name)
+    with pytest.raises(LinkError, match=re.escape(name)):
+        rb.dumps(tmp_path / "ckpt")
+    copied = [p for p in (tmp_path / "ckpt").rglob("*")] if (tmp_path / "ckpt").exists() else []
+    assert not [p for p in copied if p.is_file() and p.read_bytes() == SECRET], copied
+    os.remove(path / name)
+    storage.close()
+
+
 # -- found by a review of every command (2026-11-29): writes that left the store ------------------------------
 
 

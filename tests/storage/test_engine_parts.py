@@ -460,11 +460,12 @@ def test_links_below_with_chunks_true_reports_every_link(tmp_path):
     ]
 
 
-def test_links_below_with_chunks_false_skips_only_the_columns_chunk_folders(tmp_path):
+def test_links_below_with_chunks_false_skips_only_the_folders_of_the_columns_chunks(tmp_path):
+    """The ``c/`` folders are listed (a link at a chunk's name in one is reported), their chunks' folders not."""
     _store_with_links(tmp_path)
     assert links_below(tmp_path, chunks=False) == [
         ("_journal/obs/c/0", "/elsewhere/journal"), ("grp/c/0", "/elsewhere/node"),
-        ("obs/zarr.json", "/elsewhere/meta"), ("zarr.json", "/elsewhere/top"),
+        ("next/done/c/0", "/elsewhere/nested"), ("obs/zarr.json", "/elsewhere/meta"), ("zarr.json", "/elsewhere/top"),
     ]
 
 

@@ -591,54 +591,71 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
     write goes into an existing file (Zarr and the journal write a new file and rename it into place),
     so a write never reaches the file's other names.
 
-    ``chunks``: ``True`` walks everything; ``False`` skips the columns' chunk folders (``c/``, in a store
-    created before 2026-12; not those of the ``_``-named folders: the journal, a component's group), which an
-    open served by a sealed row file never reads (:mod:`.rowfile`); ``None`` walks only the columns' chunks
+    ``chunks``: ``True`` walks everything; ``False`` skips the folders of the columns' chunks (``c/<c>/``, in a
+    store created before 2026-12; not those of the ``_``-named folders: the journal, a component's group), which
+    an open served by a sealed row file never reads (:mod:`.rowfile`); ``None`` walks only the columns' chunks
     (checked before they are read): those folders and the chunk files (``c.<c>.0``) of a store created since,
-    which lie in their column's folder. A ``False`` walk lists that folder anyway, so it reports a link or
-    special file at a chunk's name too; a link in place of a whole ``c/`` folder is reported by every walk.
+    which lie in their column's folder. Every walk lists the columns' folders and their ``c/`` folders, so a
+    ``False`` walk reports a link or special file at a chunk's name too, and walks whatever in a ``c/`` folder
+    is no chunk (a group named ``c`` whose ``zarr.json`` is gone); a link in place of a whole ``c/`` folder is
+    reported by every walk.
 
     Example:
         >>> import os, tempfile
         >>> d = tempfile.mkdtemp()
         >>> os.makedirs(d + "/obs/c"); os.symlink("/etc/hostname", d + "/obs/c/0")
         >>> links_below(d), links_below(d, chunks=False), links_below(d, chunks=None)
-        ([('obs/c/0', '/etc/hostname')], [], [('obs/c/0', '/etc/hostname')])
+        ([('obs/c/0', '/etc/hostname')], [('obs/c/0', '/etc/hostname')], [('obs/c/0', '/etc/hostname')])
+        >>> os.remove(d + "/obs/c/0"); os.makedirs(d + "/obs/c/0"); os.symlink("/etc/hostname", d + "/obs/c/0/0")
+        >>> links_below(d), links_below(d, chunks=False), links_below(d, chunks=None)
+        ([('obs/c/0/0', '/etc/hostname')], [], [('obs/c/0/0', '/etc/hostname')])
+        >>> os.remove(d + "/obs/c/0/0")
         >>> os.makedirs(d + "/act"); os.symlink("/etc/hostname", d + "/act/c.0.0")
         >>> links_below(d, chunks=False), links_below(d, chunks=None)[0]
         ([('act/c.0.0', '/etc/hostname')], ('act/c.0.0', '/etc/hostname'))
     """
     root = os.fspath(directory)
-    out, stack = [], [(root, False, False)]  # (folder, in a column's chunk folder, in a "_" folder)
+    # (folder, what it is: "" a node's or another folder, "c" a column's chunk folder, "chunk" a chunk's folder,
+    #  in a "_" folder)
+    out, stack = [], [(root, "", False)]
     while stack:
-        folder, in_chunks, own = stack.pop()
+        folder, kind, own = stack.pop()
         try:
             entries = list(os.scandir(folder))
         except (FileNotFoundError, NotADirectoryError):
             continue
         for entry in entries:
             inside = own or (folder == root and entry.name.startswith("_"))  # the journal, a component's group
-            # a column's chunk folder: "c" in a node's folder, itself no node (no zarr.json of its own)
-            chunk_folder = in_chunks or (not inside and entry.name == "c" and folder != root
-                                         and not os.path.lexists(os.path.join(entry.path, "zarr.json")))
-            # a column's chunk file ("c.<c>.0" in its folder; a folder of that name is a node, or no chunk)
-            chunk_file = (not chunk_folder and not inside and folder != root and entry.name.startswith("c.")
-                          and not entry.is_dir(follow_symlinks=False))
-            chunk_folder = chunk_folder or chunk_file
+            is_dir = entry.is_dir(follow_symlinks=False)
+            if kind == "chunk":
+                chunk = True
+            elif kind == "c":  # c/<c>: a chunk's folder, or a 1-D column's chunk file; any other name is no chunk
+                chunk = entry.name.isdigit()
+            else:  # c.<c>.0: a chunk file in its column's folder; "c": a chunk folder a link replaced
+                chunk = (not inside and folder != root and not is_dir
+                         and (entry.name.startswith("c.") or entry.name == "c" and entry.is_symlink()))
             if entry.is_symlink():
-                if chunks is not None or chunk_folder:
+                if chunks is not None or chunk:
                     try:
                         target = os.readlink(entry.path)
                     except OSError:
                         target = "?"
                     out.append((os.path.relpath(entry.path, root).replace(os.sep, "/"), target))
-            elif not entry.is_dir(follow_symlinks=False) and not entry.is_file(follow_symlinks=False):
+            elif not is_dir and not entry.is_file(follow_symlinks=False):
                 # a named pipe, a socket, a device: a read of one blocks for ever or reads what is not a file
-                if chunks is not None or chunk_folder:
+                if chunks is not None or chunk:
                     out.append((os.path.relpath(entry.path, root).replace(os.sep, "/"), special_kind(entry.path)))
-            elif entry.is_dir(follow_symlinks=False) and not (chunk_folder and chunks is False) \
-                    and not (inside and chunks is None):
-                stack.append((entry.path, chunk_folder, inside))
+            elif is_dir and chunk:  # a chunk's folder: what a sealed open never reads
+                if chunks is not False:
+                    stack.append((entry.path, "chunk", inside))
+            elif is_dir and kind == "" and not inside and folder != root and entry.name == "c" \
+                    and not os.path.lexists(os.path.join(entry.path, "zarr.json")):
+                # a column's chunk folder: "c" in a node's folder, itself no node (no zarr.json of its own);
+                # listed by every walk: what is not a chunk's name in it (a group named "c" that lost its
+                # zarr.json) is walked as any folder
+                stack.append((entry.path, "c", inside))
+            elif is_dir and not (inside and chunks is None):
+                stack.append((entry.path, "", inside))
     return sorted(out)
 
 

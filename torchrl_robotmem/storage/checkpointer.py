@@ -20,6 +20,7 @@ from typing import Any
 
 from torchrl.data.replay_buffers.checkpointers import StorageCheckpointerBase
 
+from ._backend import refuse_links
 from .rowfile import ROWS_DIR
 
 __all__ = ["ZarrCheckpointer"]
@@ -29,7 +30,11 @@ _COPY = "store.zarr"
 
 
 def _link_tree(src: Path, dst: Path) -> None:
-    """Copies a directory tree with hard links (plain copies across filesystems)."""
+    """Copies a directory tree with hard links (plain copies across filesystems).
+
+    The caller refused a store holding a link or special file; one made since is copied as the link it is,
+    never followed (a later open of the copy refuses it).
+    """
 
     def link(s: str, d: str) -> None:
         try:
@@ -40,7 +45,7 @@ def _link_tree(src: Path, dst: Path) -> None:
     if dst.exists():
         shutil.rmtree(dst)
     # the row file is a cache a writer writes in place: never linked (the copy fills its own at its first open)
-    shutil.copytree(src, dst, copy_function=link, ignore=shutil.ignore_patterns("*.partial", ROWS_DIR))
+    shutil.copytree(src, dst, symlinks=True, copy_function=link, ignore=shutil.ignore_patterns("*.partial", ROWS_DIR))
 
 
 class ZarrCheckpointer(StorageCheckpointerBase):
@@ -62,6 +67,8 @@ class ZarrCheckpointer(StorageCheckpointerBase):
         meta = {"store": storage.path, "len": len(storage), "write_count": storage.write_count, "copy": None}
         local = storage.local_dir
         if local is not None:
+            # nothing outside the store reaches the checkpoint: a link (or a named pipe) anywhere in it refuses it
+            refuse_links(local, storage.path)
             _link_tree(Path(local), path / _COPY)
             meta["copy"] = _COPY
         with open(path / _POINTER, "w") as f:
