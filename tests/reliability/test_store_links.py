@@ -260,25 +260,27 @@ def test_a_nested_column_named_like_a_chunk_file_replaced_by_a_link_is_refused(t
         ZarrStorage(str(path), read_only=read_only)
 
 
+@pytest.mark.parametrize("key", ["x", "0"], ids=["a node", "a node named by a number"])
 @pytest.mark.parametrize("what", ["a link", "a named pipe"])
-def test_a_group_named_c_that_lost_its_zarr_json_is_walked_by_a_sealed_open(tmp_path, what):
-    """Found by a review: a folder named ``c`` with no ``zarr.json`` was taken for a column's chunk folder and not
-    walked by a sealed open, a group named ``c`` that lost its ``zarr.json`` too: a link in it was read through (a
-    named pipe there blocked the writable open for ever). What in a ``c/`` folder is no chunk's name is walked."""
+def test_a_group_named_c_that_lost_its_zarr_json_is_walked_by_a_sealed_open(tmp_path, what, key):
+    """Found by two reviews: a folder named ``c`` with no ``zarr.json`` was taken for a column's chunk folder and
+    not walked by a sealed open, a group named ``c`` that lost its ``zarr.json`` too, and then the nodes in it
+    named by a number (a chunk's name): a link in it was read through, a named pipe there blocked the writable
+    open for ever. A ``c/`` folder is a chunk folder only in a folder whose ``zarr.json`` describes an array."""
     from torchrl_robotmem.storage._backend import links_below
 
     path, elsewhere = tmp_path / "a.zarr", tmp_path / "other_disk"
     with ZarrStorage(str(path), MAX, chunk_rows=CHUNK, goal_conditioned=False) as s:
-        s.set(slice(0, 10), TensorDict({"obs": torch.zeros(10, 2), "next": {"c": {"x": torch.ones(10, 2)}}}, [10]))
+        s.set(slice(0, 10), TensorDict({"obs": torch.zeros(10, 2), "next": {"c": {key: torch.ones(10, 2)}}}, [10]))
     (path / "next" / "c" / "zarr.json").unlink()
     if what == "a link":
-        shutil.move(path / "next" / "c" / "x", elsewhere)
-        os.symlink(elsewhere, path / "next" / "c" / "x")
-        name = "next/c/x"
+        shutil.move(path / "next" / "c" / key, elsewhere)
+        os.symlink(elsewhere, path / "next" / "c" / key)
+        name = f"next/c/{key}"
     else:
-        (path / "next" / "c" / "x" / "zarr.json").unlink()
-        os.mkfifo(path / "next" / "c" / "x" / "zarr.json")
-        name = "next/c/x/zarr.json"
+        (path / "next" / "c" / key / "zarr.json").unlink()
+        os.mkfifo(path / "next" / "c" / key / "zarr.json")
+        name = f"next/c/{key}/zarr.json"
     assert [k for k, _ in links_below(path, chunks=False)] == [name]
     for read_only in (True, False):
         with pytest.raises(LinkError, match=re.escape(name)):

@@ -604,6 +604,8 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
         >>> import os, tempfile
         >>> d = tempfile.mkdtemp()
         >>> os.makedirs(d + "/obs/c"); os.symlink("/etc/hostname", d + "/obs/c/0")
+        >>> with open(d + "/obs/zarr.json", "w") as f:
+        ...     _ = f.write('{"node_type": "array"}')  # obs is an array: obs/c holds its chunks
         >>> links_below(d), links_below(d, chunks=False), links_below(d, chunks=None)
         ([('obs/c/0', '/etc/hostname')], [('obs/c/0', '/etc/hostname')], [('obs/c/0', '/etc/hostname')])
         >>> os.remove(d + "/obs/c/0"); os.makedirs(d + "/obs/c/0"); os.symlink("/etc/hostname", d + "/obs/c/0/0")
@@ -630,7 +632,7 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
             if kind == "chunk":
                 chunk = True
             elif kind == "c":  # c/<c>: a chunk's folder, or a 1-D column's chunk file; any other name is no chunk
-                chunk = entry.name.isdigit()
+                chunk = entry.name.isascii() and entry.name.isdigit()
             else:  # c.<c>.0: a chunk file in its column's folder; "c": a chunk folder a link replaced
                 chunk = (not inside and folder != root and not is_dir
                          and (entry.name.startswith("c.") or entry.name == "c" and entry.is_symlink()))
@@ -649,14 +651,30 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
                 if chunks is not False:
                     stack.append((entry.path, "chunk", inside))
             elif is_dir and kind == "" and not inside and folder != root and entry.name == "c" \
-                    and not os.path.lexists(os.path.join(entry.path, "zarr.json")):
-                # a column's chunk folder: "c" in a node's folder, itself no node (no zarr.json of its own);
-                # listed by every walk: what is not a chunk's name in it (a group named "c" that lost its
-                # zarr.json) is walked as any folder
-                stack.append((entry.path, "c", inside))
+                    and (chunks is None or _is_array_folder(folder)):
+                # a column's chunk folder: "c" in an array's folder (its zarr.json says so: a group may hold a
+                # node named "c", or one that lost its zarr.json, and nodes named by digits in it); listed by
+                # every walk, what is not a chunk's name in it walked as any folder. A walk before the chunks
+                # are read takes any folder named "c" for one (what is below it is reported: never too little)
+                stack.append((entry.path, "chunk" if chunks is None else "c", inside))
             elif is_dir and not (inside and chunks is None):
                 stack.append((entry.path, "", inside))
     return sorted(out)
+
+
+def _is_array_folder(folder: str) -> bool:
+    """Whether ``folder/zarr.json`` is a regular file describing a Zarr array (read without following a link or
+    blocking on a special file; anything else, or unreadable: ``False``)."""
+    meta = os.path.join(folder, "zarr.json")
+    try:
+        if not stat.S_ISREG(os.lstat(meta).st_mode):
+            return False
+        fd = os.open(meta, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as f:
+            doc = json.loads(f.read(1 << 20))
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and doc.get("node_type") == "array"
 
 
 def special_kind(path: str) -> str:

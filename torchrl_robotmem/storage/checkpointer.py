@@ -36,11 +36,11 @@ def _link_tree(src: Path, dst: Path) -> None:
     never followed (a later open of the copy refuses it).
     """
 
-    def link(s: str, d: str) -> None:
+    def link(s: str, d: str) -> None:  # a file made a link after the listing: linked or copied as the link
         try:
-            os.link(s, d)
+            os.link(s, d, follow_symlinks=False)
         except OSError:
-            shutil.copy2(s, d)
+            shutil.copy2(s, d, follow_symlinks=False)
 
     if dst.exists():
         shutil.rmtree(dst)
