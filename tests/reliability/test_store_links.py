@@ -287,6 +287,32 @@ def test_a_group_named_c_that_lost_its_zarr_json_is_walked_by_a_sealed_open(tmp_
             ZarrStorage(str(path), read_only=read_only)
 
 
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("what", ["a link", "a named pipe"])
+def test_a_column_in_a_forged_arrays_chunk_folder_is_refused_before_it_is_read(tmp_path, what):
+    """Found by a third review: a group's ``zarr.json`` replaced by an array's made its ``c/<digits>/`` folders
+    chunk folders, which a sealed open does not walk; the writable open then read a column's ``zarr.json`` in one
+    (through a link, or blocking for ever on a named pipe). A record naming a column in an array's chunk folder
+    is refused before any of its files is read (Zarr keeps no node below an array)."""
+    from torchrl_robotmem.storage.errors import IntegrityError
+
+    path, elsewhere = tmp_path / "a.zarr", tmp_path / "other_disk"
+    with ZarrStorage(str(path), MAX, chunk_rows=CHUNK, goal_conditioned=False) as s:
+        s.set(slice(0, 10), TensorDict({"obs": torch.zeros(10, 2), "next": {"c": {"0": torch.ones(10, 2)}}}, [10]))
+    shutil.copy(path / "obs" / "zarr.json", path / "next" / "zarr.json")  # "next" now claims to be an array
+    column = path / "next" / "c" / "0" / "zarr.json"
+    if what == "a link":
+        elsewhere.mkdir()
+        shutil.move(column, elsewhere / "zarr.json")
+        os.symlink(elsewhere / "zarr.json", column)
+    else:
+        column.unlink()
+        os.mkfifo(column)
+    for read_only in (False, True):
+        with pytest.raises(IntegrityError, match=r"next/c/0.*lies in the chunk folder of the array 'next'"):
+            ZarrStorage(str(path), read_only=read_only)
+
+
 @pytest.mark.parametrize("target", ["a file", "a folder"])
 def test_a_checkpoint_of_a_store_holding_a_link_is_refused(tmp_path, target):
     """Found by a review: ``ZarrCheckpointer`` copied the store with ``shutil.copytree``, which followed a link made

@@ -651,7 +651,7 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
                 if chunks is not False:
                     stack.append((entry.path, "chunk", inside))
             elif is_dir and kind == "" and not inside and folder != root and entry.name == "c" \
-                    and (chunks is None or _is_array_folder(folder)):
+                    and (chunks is None or is_array_folder(folder)):
                 # a column's chunk folder: "c" in an array's folder (its zarr.json says so: a group may hold a
                 # node named "c", or one that lost its zarr.json, and nodes named by digits in it); listed by
                 # every walk, what is not a chunk's name in it walked as any folder. A walk before the chunks
@@ -662,17 +662,26 @@ def links_below(directory: str | os.PathLike, *, chunks: bool | None = True) -> 
     return sorted(out)
 
 
-def _is_array_folder(folder: str) -> bool:
+def is_array_folder(folder: str) -> bool:
     """Whether ``folder/zarr.json`` is a regular file describing a Zarr array (read without following a link or
-    blocking on a special file; anything else, or unreadable: ``False``)."""
+    blocking on a special file, 1 MiB at most; anything else, or unreadable: ``False``).
+
+    Example:
+        >>> import tempfile, zarr
+        >>> d = tempfile.mkdtemp(); _ = zarr.create_array(d + "/a", shape=(2,), dtype="f4")
+        >>> is_array_folder(d + "/a"), is_array_folder(d)
+        (True, False)
+    """
     meta = os.path.join(folder, "zarr.json")
     try:
         if not stat.S_ISREG(os.lstat(meta).st_mode):
             return False
         fd = os.open(meta, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
         with os.fdopen(fd, "rb") as f:
-            doc = json.loads(f.read(1 << 20))
-    except (OSError, ValueError, RecursionError):
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):  # replaced since the lstat
+                return False
+            doc = json.loads(f.read(1 << 20) or b"")
+    except (OSError, ValueError, TypeError, RecursionError):
         return False
     return isinstance(doc, dict) and doc.get("node_type") == "array"
 

@@ -33,13 +33,14 @@ import zarr
 from zarr.core.sync import sync as zarr_sync
 from zarr.storage import LocalStore
 
+from .. import _backend
 from ..errors import IntegrityError, Problem
 from ..format import decode_chunks, dims, numel
 from .arrays import ArrayHead, check_arrays, check_journal, decode_journal_chunks
 from .attributes import check_attributes
 from .capacity import capacity_problem
 
-__all__ = ["check_open"]
+__all__ = ["check_open", "columns_in_chunk_folders"]
 
 
 def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any, read_only: bool,
@@ -64,6 +65,8 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
     problems = check_attributes(attrs)
     if any(p.kind == "format" for p in problems):
         return attrs  # ZarrStorage's own format check says what to do
+    if not problems and local_dir is not None:
+        problems += columns_in_chunk_folders(attrs.get("schema") or {}, local_dir)
     capacity = None if problems else capacity_problem(attrs, mapped=mapped)
     if capacity is not None:  # before anything is listed or allocated
         raise ValueError(f"The store at {path!r} cannot be opened on this machine: {capacity.what}. "
@@ -92,6 +95,29 @@ def check_open(group: Any, attrs: dict, *, store: Any, local_dir: Any, path: Any
     )
     return {**attrs, "len": min(int(attrs.get("len", 0)), cut * numel(attrs)), "cursor": cut % dims(attrs)[0],
             "last_cursor": cut - 1, "journal": None}
+
+
+def columns_in_chunk_folders(schema: dict, local_dir: Any) -> list[Problem]:
+    """Columns whose folder lies in an array's chunk folder (``<array>/c/<digits>/...``): Zarr keeps no node below
+    an array, and a sealed open does not walk those folders for links (:func:`~.._backend.links_below`), so a
+    record naming one is refused before any of its files is read.
+
+    Example:
+        >>> import tempfile, zarr
+        >>> d = tempfile.mkdtemp(); _ = zarr.create_array(d + "/obs", shape=(2,), dtype="f4")
+        >>> columns_in_chunk_folders({"obs": {}, "obs/c/0/x": {}, "next/c/0": {}}, d)[0].array
+        'obs/c/0/x'
+    """
+    out = []
+    for path in schema:
+        parts = str(path).split("/")
+        for i in range(1, len(parts) - 1):
+            if parts[i] == "c" and parts[i + 1].isascii() and parts[i + 1].isdigit() \
+                    and _backend.is_array_folder(os.path.join(os.fspath(local_dir), *parts[:i])):
+                out.append(Problem("metadata", f"lies in the chunk folder of the array {'/'.join(parts[:i])!r} (Zarr "
+                                               f"keeps no node below an array)", array=path, key=f"{path}/zarr.json"))
+                break
+    return out
 
 
 def _array_problems(group: Any, attrs: dict, *, store: Any, local_dir: Any, list_chunks: bool, decode: bool,
