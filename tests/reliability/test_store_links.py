@@ -313,6 +313,33 @@ def test_a_column_in_a_forged_arrays_chunk_folder_is_refused_before_it_is_read(t
             ZarrStorage(str(path), read_only=read_only)
 
 
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("what", ["a column folder linked", "a named pipe at the record",
+                                  "a named pipe at the seal", "a named pipe at a column's description"])
+def test_a_tailing_readers_refresh_refuses_a_link_or_special_file_made_since_its_open(tmp_path, what):
+    """Found by an audit of every file an open reads: ``refresh()`` read the store again without the walk its open
+    made, so a link made since (a column folder linked to another store's) served rows from outside, and a named
+    pipe at the record, the seal or a column's description blocked it for ever. It walks the store first."""
+    path, outside = tmp_path / "a.zarr", tmp_path / "other"
+    with ZarrStorage(str(path), MAX, chunk_rows=CHUNK) as s:
+        s.set(slice(0, ROWS), _rows(ROWS, 0.0))
+    reader = ZarrStorage(str(path), read_only=True)
+    if what == "a column folder linked":
+        shutil.copytree(path / "observation", outside)
+        shutil.rmtree(path / "observation")
+        os.symlink(outside, path / "observation")
+        name = "observation"
+    else:
+        name = {"a named pipe at the record": "zarr.json", "a named pipe at the seal": "_rows/seal.json",
+                "a named pipe at a column's description": "observation/zarr.json"}[what]
+        os.remove(path / name)
+        os.mkfifo(path / name)
+    with pytest.raises(LinkError, match=re.escape(name)):
+        reader.refresh()
+    assert len(reader) == ROWS  # what it served before
+    reader.close()
+
+
 @pytest.mark.parametrize("target", ["a file", "a folder"])
 def test_a_checkpoint_of_a_store_holding_a_link_is_refused(tmp_path, target):
     """Found by a review: ``ZarrCheckpointer`` copied the store with ``shutil.copytree``, which followed a link made

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -220,10 +221,15 @@ class RowFill:
             st = os.stat(self.record_file, follow_symlinks=False)
         except OSError:
             raise _HandOver from None
+        if not stat.S_ISREG(st.st_mode):  # a link or a special file: the synchronous load refuses it
+            raise _HandOver
         ident = (st.st_ino, st.st_size, st.st_mtime_ns)
         if ident != self._last_record:
             try:  # anything unexpected in the record is the synchronous load's to check and name
-                with open(os.open(self.record_file, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))) as f:
+                flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+                with open(os.open(self.record_file, flags)) as f:
+                    if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):  # replaced since the stat
+                        raise _HandOver
                     attrs = json.load(f)["attributes"]
                 overwrites = bool(attrs.get("journal")) or int(attrs.get("write_count", 0)) > self.max_size
             except Exception:  # noqa: BLE001

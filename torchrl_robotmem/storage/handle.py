@@ -213,6 +213,8 @@ class StoreHandle:
             Keyword Args:
             on_damage (str): ``"raise"`` or ``"warn"``. served, mapped: as :meth:`open_record` takes them.
         """
+        if self.local_dir is not None:  # what the store holds now: a link or special file made since the open
+            _backend.refuse_links(self.local_dir, self.path, chunks=False)
         group = _backend.open_group(self.store, read_only=True)
         attrs = group.attrs.asdict()
         self.check_format(attrs)

@@ -51,6 +51,7 @@ import math
 import mmap
 import os
 import secrets
+import stat
 import tempfile
 from typing import Any
 
@@ -70,6 +71,16 @@ SEAL_VERSION = 1
 CACHE_ENV = "TORCHRL_ROBOTMEM_CACHE"
 _NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _SERIAL = itertools.count(1)  # names a writer's own files apart within the process
+
+
+def _open_regular(path: str, flags: int) -> int:
+    """``os.open`` of a regular file: never through a link (``ELOOP``), never blocking on a named pipe or a
+    device (opened non-blocking, then refused unless ``fstat`` says it is a regular file)."""
+    fd = os.open(path, flags | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(errno.EINVAL, "not a regular file", path)
+    return fd
 
 
 def url_cache_dir(url: str, storage_options: dict | None = None) -> str:
@@ -215,9 +226,9 @@ class RowFile:
         """A reader: the store's file, if sealed for ``attrs`` and no writer writes it."""
         path = os.path.join(self.folder, ROWS_FILE)
         try:
-            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+            fd = _open_regular(path, os.O_RDONLY)
         except OSError:
-            return False  # no file, a link (ELOOP), no permission: fill a private one
+            return False  # no file, a link (ELOOP), a special file, no permission: fill a private one
         if _lock(fd, fcntl.LOCK_SH):
             seal = self._matching_seal(fd, attrs, layout)
             if seal is not None:
@@ -236,7 +247,7 @@ class RowFile:
         """
         path = os.path.join(self.folder, ROWS_FILE)
         try:
-            fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+            fd = _open_regular(path, os.O_RDWR)
         except OSError:
             return False  # none yet (or not a file this writer may use)
         if _lock(fd, fcntl.LOCK_EX) and os.fstat(fd).st_nlink == 1:
@@ -318,7 +329,7 @@ class RowFile:
                 continue
             path = os.path.join(self.folder, name)
             try:
-                fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+                fd = _open_regular(path, os.O_RDONLY)
             except OSError:
                 continue
             try:
@@ -337,7 +348,7 @@ class RowFile:
         if layout is None:
             return None
         try:
-            sfd = os.open(self._seal_path(), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+            sfd = _open_regular(self._seal_path(), os.O_RDONLY)
         except OSError:
             return None
         try:
