@@ -23,7 +23,7 @@ import zarr
 from zarr.codecs import BloscCodec, Crc32cCodec, ZstdCodec
 from zarr.core.sync import sync
 
-from .contained import ContainedStore
+from .contained import ContainedStore, open_regular
 from .errors import ChainedLocalPathError, IntegrityError, LinkError, Problem
 from .format import FORMAT_MARKER, FORMAT_VERSION  # noqa: F401 - re-exported: the format lives in .format
 
@@ -676,10 +676,7 @@ def is_array_folder(folder: str) -> bool:
     try:
         if not stat.S_ISREG(os.lstat(meta).st_mode):
             return False
-        fd = os.open(meta, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
-        with os.fdopen(fd, "rb") as f:
-            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):  # replaced since the lstat
-                return False
+        with os.fdopen(open_regular(meta), "rb") as f:
             doc = json.loads(f.read(1 << 20) or b"")
     except (OSError, ValueError, TypeError, RecursionError):
         return False

@@ -63,6 +63,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from .contained import open_regular
 from .fast_read import ChunkReads, workers
 
 __all__ = ["RowFill"]
@@ -226,10 +227,7 @@ class RowFill:
         ident = (st.st_ino, st.st_size, st.st_mtime_ns)
         if ident != self._last_record:
             try:  # anything unexpected in the record is the synchronous load's to check and name
-                flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
-                with open(os.open(self.record_file, flags)) as f:
-                    if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):  # replaced since the stat
-                        raise _HandOver
+                with open(open_regular(self.record_file)) as f:
                     attrs = json.load(f)["attributes"]
                 overwrites = bool(attrs.get("journal")) or int(attrs.get("write_count", 0)) > self.max_size
             except Exception:  # noqa: BLE001

@@ -31,8 +31,29 @@ from pathlib import Path
 
 from zarr.storage import LocalStore
 
-__all__ = ["ContainedStore", "FolderCheck"]
+__all__ = ["ContainedStore", "FolderCheck", "open_regular"]
 
+
+
+def open_regular(path: str, flags: int = os.O_RDONLY) -> int:
+    """``os.open`` of a regular file below a store: never through a link at its name (``ELOOP``), never blocking
+    on a named pipe or a device (opened non-blocking, then refused unless ``fstat`` says it is a regular file:
+    ``OSError(EINVAL)``). The one way this package opens a file it reads without a Zarr store in between.
+
+    Example:
+        >>> import os, tempfile
+        >>> d = tempfile.mkdtemp(); os.mkfifo(d + "/pipe")
+        >>> try:
+        ...     open_regular(d + "/pipe")
+        ... except OSError as err:
+        ...     print(err.strerror)
+        not a regular file
+    """
+    fd = os.open(path, flags | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(errno.EINVAL, "not a regular file", path)
+    return fd
 
 class FolderCheck:
     """Looks at the folders on the way to a key once each; refuses a symbolic link among them.

@@ -36,9 +36,7 @@ Example:
 """
 from __future__ import annotations
 
-import errno
 import os
-import stat
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -50,6 +48,7 @@ import numpy as np
 import torch
 
 from .chunk_pipeline import parse_pipeline, usable_cpus
+from .contained import open_regular
 
 __all__ = ["ChunkPlan", "plan_array", "read_into", "workers"]
 
@@ -243,11 +242,8 @@ def _numpy(col: torch.Tensor) -> np.ndarray | None:
 
 def _read_file(name: str, buf: np.ndarray) -> np.ndarray:
     """The bytes of file ``name`` (in ``buf`` when they fit); a symbolic link is refused (``ELOOP``), never followed."""
-    with open(os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK), "rb", buffering=0) as f:
-        st = os.fstat(f.fileno())
-        if not stat.S_ISREG(st.st_mode):  # a named pipe would block the read for ever
-            raise OSError(errno.EINVAL, f"{name}: not a regular file")
-        size = st.st_size
+    with open(open_regular(name), "rb", buffering=0) as f:  # a named pipe would block the read for ever
+        size = os.fstat(f.fileno()).st_size
         if size > buf.size:
             buf = np.empty(size, np.uint8)
         got = f.readinto(memoryview(buf)[:size])

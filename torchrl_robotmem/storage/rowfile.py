@@ -51,12 +51,12 @@ import math
 import mmap
 import os
 import secrets
-import stat
 import tempfile
 from typing import Any
 
 import torch
 
+from .contained import open_regular
 from .prefault import Prefault
 
 __all__ = ["CACHE_ENV", "ROWS_DIR", "ROWS_FILE", "SEAL_FILE", "RowFile", "record_digest", "remove_rows", "rows_layout",
@@ -71,16 +71,6 @@ SEAL_VERSION = 1
 CACHE_ENV = "TORCHRL_ROBOTMEM_CACHE"
 _NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _SERIAL = itertools.count(1)  # names a writer's own files apart within the process
-
-
-def _open_regular(path: str, flags: int) -> int:
-    """``os.open`` of a regular file: never through a link (``ELOOP``), never blocking on a named pipe or a
-    device (opened non-blocking, then refused unless ``fstat`` says it is a regular file)."""
-    fd = os.open(path, flags | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
-    if not stat.S_ISREG(os.fstat(fd).st_mode):
-        os.close(fd)
-        raise OSError(errno.EINVAL, "not a regular file", path)
-    return fd
 
 
 def url_cache_dir(url: str, storage_options: dict | None = None) -> str:
@@ -226,7 +216,7 @@ class RowFile:
         """A reader: the store's file, if sealed for ``attrs`` and no writer writes it."""
         path = os.path.join(self.folder, ROWS_FILE)
         try:
-            fd = _open_regular(path, os.O_RDONLY)
+            fd = open_regular(path, os.O_RDONLY)
         except OSError:
             return False  # no file, a link (ELOOP), a special file, no permission: fill a private one
         if _lock(fd, fcntl.LOCK_SH):
@@ -247,7 +237,7 @@ class RowFile:
         """
         path = os.path.join(self.folder, ROWS_FILE)
         try:
-            fd = _open_regular(path, os.O_RDWR)
+            fd = open_regular(path, os.O_RDWR)
         except OSError:
             return False  # none yet (or not a file this writer may use)
         if _lock(fd, fcntl.LOCK_EX) and os.fstat(fd).st_nlink == 1:
@@ -329,7 +319,7 @@ class RowFile:
                 continue
             path = os.path.join(self.folder, name)
             try:
-                fd = _open_regular(path, os.O_RDONLY)
+                fd = open_regular(path, os.O_RDONLY)
             except OSError:
                 continue
             try:
@@ -348,7 +338,7 @@ class RowFile:
         if layout is None:
             return None
         try:
-            sfd = _open_regular(self._seal_path(), os.O_RDONLY)
+            sfd = open_regular(self._seal_path(), os.O_RDONLY)
         except OSError:
             return None
         try:
